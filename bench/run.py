@@ -1,0 +1,78 @@
+"""Benchmark runner: ``python bench/run.py [--out FILE] [--only PREFIX] [--reps N]``.
+
+Every ``bench/bench_*.py`` module exposes ``figures()``, a generator of
+``(name, fn)`` pairs (set-up done before the yield, ``fn()`` = one repetition), or of
+``(name, fn, "percentiles")`` for figures reported as ``name_p50`` / ``name_p99``.
+Each figure is the median (or the percentiles) over ``reps`` timed repetitions, in ms.
+"""
+from __future__ import annotations
+
+import argparse
+import gc
+import importlib.util
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+
+
+def _load(path: Path):
+    spec = importlib.util.spec_from_file_location(path.stem, path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    return mod
+
+
+def time_fn(fn, reps: int, warmup: int = 3) -> np.ndarray:
+    """Wall time of ``reps`` calls of ``fn`` in milliseconds (GC paused while timing)."""
+    for _ in range(warmup):
+        fn()
+    out = np.empty(reps)
+    gc_was = gc.isenabled()
+    gc.disable()
+    try:
+        for i in range(reps):
+            t0 = time.perf_counter()
+            fn()
+            out[i] = (time.perf_counter() - t0) * 1e3
+    finally:
+        if gc_was:
+            gc.enable()
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default="out/bench/results.json")
+    ap.add_argument("--only", default="", help="run only figures whose name starts with this")
+    ap.add_argument("--reps", type=int, default=100)
+    args = ap.parse_args(argv)
+    results: dict[str, float] = {}
+    for path in sorted(HERE.glob("bench_*.py")):
+        for item in _load(path).figures():
+            name, fn = item[0], item[1]
+            if not name.startswith(args.only):
+                continue
+            t = time_fn(fn, max(args.reps, 50))
+            if len(item) > 2 and item[2] == "percentiles":
+                results[f"{name}_p50"] = round(float(np.percentile(t, 50)), 4)
+                results[f"{name}_p99"] = round(float(np.percentile(t, 99)), 4)
+            else:
+                results[name] = round(float(np.median(t)), 4)
+            print(f"{name:45s} median {np.median(t):9.3f} ms  p99 {np.percentile(t, 99):9.3f} ms",
+                  flush=True)
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    old = json.loads(out.read_text()) if out.exists() and args.only else {}
+    old.update(results)
+    out.write_text(json.dumps(old, indent=2, sort_keys=True) + "\n")
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,48 @@
+"""Run-specific ROS domain ids, leased with file locks so that concurrent test runs and
+tests never share a domain (DDS traffic of ours also stays on loopback: see env.sh)."""
+from __future__ import annotations
+
+import fcntl
+import os
+import tempfile
+from pathlib import Path
+
+#: Domains 1..101 keep Fast DDS's ports below Linux's ephemeral range; 0 is left to
+#: whatever stack runs with the default domain.
+DOMAIN_RANGE = range(1, 102)
+LOCK_DIR = Path(os.environ.get("LQ_DOMAIN_LOCK_DIR", Path(tempfile.gettempdir()) / "lidar_quality_domains"))
+
+
+class DomainLease:
+    """An exclusive lease of one ROS domain id, held until ``release()`` (or process exit)."""
+
+    def __init__(self, domain_id: int, fd: int):
+        self.domain_id = domain_id
+        self._fd = fd
+
+    @classmethod
+    def acquire(cls, start: int | None = None) -> "DomainLease":
+        LOCK_DIR.mkdir(parents=True, exist_ok=True)
+        ids = list(DOMAIN_RANGE)
+        k = (os.getpid() if start is None else start) % len(ids)
+        for domain_id in ids[k:] + ids[:k]:
+            fd = os.open(LOCK_DIR / f"{domain_id}.lock", os.O_CREAT | os.O_RDWR, 0o666)
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                os.close(fd)
+                continue
+            return cls(domain_id, fd)
+        raise RuntimeError(f"no free ROS domain id in {DOMAIN_RANGE} (locks in {LOCK_DIR})")
+
+    def release(self) -> None:
+        if self._fd >= 0:
+            fcntl.flock(self._fd, fcntl.LOCK_UN)
+            os.close(self._fd)
+            self._fd = -1
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.release()

@@ -1,0 +1,41 @@
+"""Parameter declaration with mandatory descriptions."""
+from __future__ import annotations
+
+from typing import Any
+
+from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                ParameterType)
+
+_TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+          float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+
+
+def declare(node, name: str, default: Any, description: str, *, read_only: bool = False,
+            min_value: float | None = None, max_value: float | None = None,
+            choices: tuple[str, ...] | None = None) -> Any:
+    """Declare ``name`` with a description (and range / choices) and return its value.
+
+    Values outside the range or the choices raise ``ValueError`` naming the parameter,
+    so a misconfigured node fails at start-up with a clear message.
+    """
+    if not description:
+        raise ValueError(f"parameter {name!r} needs a description")
+    desc = ParameterDescriptor(name=name, description=description, read_only=read_only,
+                               type=_TYPES.get(type(default), ParameterType.PARAMETER_NOT_SET))
+    if choices:
+        desc.additional_constraints = "one of: " + ", ".join(choices)
+    if min_value is not None or max_value is not None:
+        lo = -float("inf") if min_value is None else min_value
+        hi = float("inf") if max_value is None else max_value
+        if isinstance(default, int) and not isinstance(default, bool):
+            desc.integer_range = [IntegerRange(from_value=int(max(lo, -2**63)),
+                                               to_value=int(min(hi, 2**63 - 1)), step=0)]
+        else:
+            desc.floating_point_range = [FloatingPointRange(from_value=float(lo),
+                                                            to_value=float(hi), step=0.0)]
+    value = node.declare_parameter(name, default, desc).value
+    if choices and value not in choices:
+        raise ValueError(f"parameter {name!r} = {value!r}: expected one of {list(choices)}")
+    if min_value is not None and value < min_value or max_value is not None and value > max_value:
+        raise ValueError(f"parameter {name!r} = {value!r}: outside [{min_value}, {max_value}]")
+    return value

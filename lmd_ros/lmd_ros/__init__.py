@@ -1,0 +1,1 @@
+"""LidarMetaDetect: box-wise meta confidence and predicted IoU for lidar 3D detections."""

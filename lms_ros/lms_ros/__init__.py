@@ -1,0 +1,1 @@
+"""LidarMetaSeg: segment-wise false-positive probability and predicted IoU for lidar segmentation."""

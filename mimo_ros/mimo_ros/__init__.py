@@ -1,0 +1,1 @@
+"""LiDAR-MIMO: merge the heads of a multi-output 3D detector, uncertainty and meta quality."""

@@ -1,0 +1,22 @@
+#!/usr/bin/env bash
+# colcon build of ros2_ws/. Our vision_msgs copy is built only when the environment has
+# none: with an installed vision_msgs it is marked COLCON_IGNORE so it never shadows it.
+set -eo pipefail
+cd "$(dirname "$0")/.."
+source scripts/env.sh
+ignore=ros2_ws/src/vision_msgs/COLCON_IGNORE
+external=""
+IFS=: read -ra prefixes <<< "${AMENT_PREFIX_PATH:-}"
+for p in "${prefixes[@]}"; do
+  case "$p" in "$LQ_ROOT/ros2_ws/install"*) continue ;; esac
+  if [ -e "$p/share/ament_index/resource_index/packages/vision_msgs" ]; then external="$p"; break; fi
+done
+if [ -n "$external" ]; then
+  echo "build: using the installed vision_msgs in $external"
+  touch "$ignore"
+else
+  rm -f "$ignore"
+fi
+cd ros2_ws
+colcon --log-base log build --symlink-install --event-handlers console_direct- \
+  --cmake-args -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$(command -v python)" "$@"
