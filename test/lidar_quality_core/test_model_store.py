@@ -1,0 +1,405 @@
+"""Tests of lidar_quality_core.model_store."""
+from __future__ import annotations
+
+import json
+import pickle
+import warnings
+from datetime import datetime
+from pathlib import Path
+
+import joblib
+import numpy as np
+import pytest
+import xgboost as xgb
+from sklearn.ensemble import GradientBoostingClassifier, GradientBoostingRegressor
+from sklearn.linear_model import LogisticRegression, Ridge
+
+from lidar_quality_core.model_store import (
+    MANIFEST_SUFFIX,
+    LoadedModel,
+    ModelStoreError,
+    ModelStoreWarning,
+    load_model,
+    manifest_path_for,
+    save_model,
+    sha256_file,
+)
+
+FEATURES = ["n_points", "range_m", "score", "height_m"]
+
+
+@pytest.fixture(scope="module")
+def data():
+    rng = np.random.default_rng(42)
+    X = rng.normal(size=(120, len(FEATURES)))
+    y_cls = (X[:, 0] + 0.5 * X[:, 2] + rng.normal(scale=0.5, size=120) > 0).astype(int)
+    y_reg = 0.3 * X[:, 1] - X[:, 3] + rng.normal(scale=0.1, size=120)
+    X_test = rng.normal(size=(30, len(FEATURES)))
+    return X, y_cls, y_reg, X_test
+
+
+@pytest.fixture
+def no_unpickle(monkeypatch):
+    """Make every unpickling entry point fail loudly."""
+    def boom(*a, **k):
+        raise AssertionError("unpickling attempted")
+
+    monkeypatch.setattr(joblib, "load", boom)
+    monkeypatch.setattr(joblib.numpy_pickle, "load", boom)
+    monkeypatch.setattr(pickle, "load", boom)
+    monkeypatch.setattr(pickle, "loads", boom)
+
+
+def _manifest(path):
+    return json.loads(manifest_path_for(path).read_text())
+
+
+def _rewrite_manifest(path, **changes):
+    m = _manifest(path)
+    m.update(changes)
+    manifest_path_for(path).write_text(json.dumps(m))
+
+
+@pytest.fixture
+def saved_clf(tmp_path, data):
+    X, y, _, _ = data
+    model = LogisticRegression().fit(X, y)
+    path = tmp_path / "lmd_classifier.joblib"
+    save_model(model, path, feature_names=FEATURES, task="classification")
+    return path, model
+
+
+# -- round trips ------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("make", [
+    lambda: GradientBoostingClassifier(n_estimators=20, random_state=0),
+    lambda: LogisticRegression(),
+])
+def test_sklearn_classifier_roundtrip(tmp_path, data, make):
+    X, y, _, X_test = data
+    model = make().fit(X, y)
+    path = tmp_path / "clf.joblib"
+    save_model(model, path, feature_names=FEATURES, task="classification",
+               training_data={"bag": "synthetic", "n": 120}, metrics={"auroc": np.float64(0.9)})
+    lm = load_model(path, expected_features=FEATURES, expected_task="classification")
+    assert isinstance(lm, LoadedModel)
+    conf = lm.predict_confidence(X_test)
+    assert conf.shape == (30,) and conf.dtype == np.float64
+    assert np.array_equal(conf, model.predict_proba(X_test)[:, 1])
+    assert np.array_equal(lm.predict(X_test), conf)
+    assert lm.manifest["metrics"] == {"auroc": 0.9}
+    assert lm.manifest["training_data"] == {"bag": "synthetic", "n": 120}
+
+
+@pytest.mark.parametrize("make", [
+    lambda: Ridge(alpha=0.5),
+    lambda: GradientBoostingRegressor(n_estimators=20, random_state=0),
+])
+def test_sklearn_regressor_roundtrip(tmp_path, data, make):
+    X, _, y, X_test = data
+    model = make().fit(X, y)
+    path = tmp_path / "iou_regressor.joblib"
+    save_model(model, path, feature_names=FEATURES, task="regression")
+    lm = load_model(path, expected_features=FEATURES, expected_task="regression")
+    assert np.array_equal(lm.predict_value(X_test), model.predict(X_test))
+    assert np.array_equal(lm.predict(X_test), model.predict(X_test))
+
+
+def test_boolean_labels_positive_class(tmp_path, data):
+    X, y, _, X_test = data
+    model = LogisticRegression().fit(X, y.astype(bool))
+    path = tmp_path / "b.joblib"
+    m = save_model(model, path, feature_names=FEATURES, task="classification")
+    assert m["positive_class"] is True
+    lm = load_model(path)
+    assert np.array_equal(lm.predict_confidence(X_test), model.predict_proba(X_test)[:, 1])
+
+
+def test_manifest_contents(saved_clf):
+    path, _ = saved_clf
+    mpath = path.with_name("lmd_classifier.joblib.manifest.json")
+    assert mpath == manifest_path_for(path) and mpath.is_file()
+    m = json.loads(mpath.read_text())
+    assert m["model_file"] == "lmd_classifier.joblib"
+    assert m["sha256"] == sha256_file(path)
+    assert m["format"] == "joblib"
+    assert m["task"] == "classification"
+    assert m["feature_names"] == FEATURES and m["n_features"] == 4
+    assert m["model_id"] == f"lmd_classifier-{m['sha256'][:12]}"
+    assert set(m["library_versions"]) == {"python", "numpy", "scikit-learn", "xgboost", "joblib"}
+    assert m["library_versions"]["numpy"] == np.__version__
+    assert m["library_versions"]["xgboost"] == xgb.__version__
+    assert datetime.fromisoformat(m["created"]).tzinfo is not None
+    assert m["positive_class"] == 1
+    # Only the two files: temp files were renamed away.
+    assert sorted(p.name for p in path.parent.iterdir()) == sorted([path.name, mpath.name])
+
+
+def test_explicit_model_id(tmp_path, data):
+    X, y, _, _ = data
+    path = tmp_path / "m.joblib"
+    save_model(LogisticRegression().fit(X, y), path, feature_names=FEATURES,
+               task="classification", model_id="lmd-v3")
+    assert load_model(path).model_id == "lmd-v3"
+
+
+# -- xgboost native --------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("ext,fmt", [("json", "xgboost-json"), ("ubj", "xgboost-ubj")])
+@pytest.mark.parametrize("task", ["classification", "regression"])
+def test_xgboost_native_roundtrip_without_pickle(tmp_path, data, monkeypatch, ext, fmt, task):
+    X, y_cls, y_reg, X_test = data
+    if task == "classification":
+        model = xgb.XGBClassifier(n_estimators=15, max_depth=3).fit(X, y_cls)
+        expected = model.predict_proba(X_test)[:, 1]
+    else:
+        model = xgb.XGBRegressor(n_estimators=15, max_depth=3).fit(X, y_reg)
+        expected = model.predict(X_test)
+    path = tmp_path / f"model.{ext}"
+    m = save_model(model, path, feature_names=FEATURES, task=task)
+    assert m["format"] == fmt  # inferred from the extension
+    assert m["xgboost"]["objective"] == ("binary:logistic" if task == "classification"
+                                         else "reg:squarederror")
+
+    def boom(*a, **k):
+        raise AssertionError("unpickling attempted")
+
+    for mod, name in [(joblib, "load"), (joblib.numpy_pickle, "load"),
+                      (pickle, "load"), (pickle, "loads")]:
+        monkeypatch.setattr(mod, name, boom)
+    lm = load_model(path, expected_features=FEATURES, expected_task=task)
+    np.testing.assert_allclose(lm.predict(X_test), expected, rtol=0, atol=1e-6)
+    assert lm.predict(X_test).shape == (30,)
+
+
+def test_xgboost_raw_booster_classifier(tmp_path, data, no_unpickle):
+    X, y, _, X_test = data
+    booster = xgb.train({"objective": "binary:logistic", "max_depth": 2},
+                        xgb.DMatrix(X, label=y), num_boost_round=10)
+    path = tmp_path / "b.ubj"
+    save_model(booster, path, feature_names=FEATURES, task="classification")
+    lm = load_model(path)
+    np.testing.assert_allclose(lm.predict_confidence(X_test),
+                               booster.predict(xgb.DMatrix(X_test)), atol=1e-6)
+
+
+def test_xgboost_joblib_format_also_works(tmp_path, data):
+    X, y, _, X_test = data
+    model = xgb.XGBClassifier(n_estimators=5).fit(X, y)
+    path = tmp_path / "x.joblib"
+    assert save_model(model, path, feature_names=FEATURES, task="classification")["format"] == "joblib"
+    np.testing.assert_allclose(load_model(path).predict(X_test), model.predict_proba(X_test)[:, 1])
+
+
+def test_xgboost_save_refusals(tmp_path, data):
+    X, y, y_reg, _ = data
+    clf = xgb.XGBClassifier(n_estimators=3).fit(X, y)
+    with pytest.raises(ModelStoreError, match="needs a '.json' file name"):
+        save_model(clf, tmp_path / "m.ubj", feature_names=FEATURES, task="classification",
+                   format="xgboost-json")
+    with pytest.raises(ModelStoreError, match="XGBClassifier saved with task regression"):
+        save_model(clf, tmp_path / "m.json", feature_names=FEATURES, task="regression")
+    with pytest.raises(ModelStoreError, match="needs an xgboost model"):
+        save_model(LogisticRegression().fit(X, y), tmp_path / "m.json",
+                   feature_names=FEATURES, task="classification", format="xgboost-json")
+    multi = xgb.XGBClassifier(n_estimators=3).fit(X, (X[:, 0] > 0).astype(int) + (X[:, 1] > 0))
+    with pytest.raises(ModelStoreError, match="binary:logistic"):
+        save_model(multi, tmp_path / "m.json", feature_names=FEATURES, task="classification")
+    reg = xgb.XGBRegressor(n_estimators=3).fit(X, y_reg)
+    with pytest.raises(ModelStoreError, match="feature_names has 3"):
+        save_model(reg, tmp_path / "m.json", feature_names=FEATURES[:3], task="regression")
+    assert list(tmp_path.iterdir()) == []
+
+
+# -- refusals at load ----------------------------------------------------------------------
+
+
+def test_tampered_model_hash_mismatch(saved_clf, no_unpickle):
+    path, _ = saved_clf
+    good = sha256_file(path)
+    raw = bytearray(path.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    path.write_bytes(bytes(raw))
+    bad = sha256_file(path)
+    with pytest.raises(ModelStoreError) as ei:
+        load_model(path)
+    msg = str(ei.value)
+    assert "SHA-256 mismatch" in msg and path.name in msg
+    assert good[:12] in msg and bad[:12] in msg and good not in msg
+
+
+def test_missing_manifest(saved_clf, no_unpickle):
+    path, _ = saved_clf
+    manifest_path_for(path).unlink()
+    with pytest.raises(ModelStoreError, match=r"missing manifest lmd_classifier\.joblib\.manifest\.json"):
+        load_model(path)
+
+
+def test_missing_model(saved_clf, no_unpickle):
+    path, _ = saved_clf
+    path.unlink()
+    with pytest.raises(ModelStoreError, match="missing model file"):
+        load_model(path)
+
+
+def test_manifest_path_refused_as_model(saved_clf):
+    path, _ = saved_clf
+    with pytest.raises(ModelStoreError, match="not its manifest"):
+        load_model(manifest_path_for(path))
+
+
+@pytest.mark.parametrize("expected,fragments", [
+    (FEATURES + ["intensity"], ["missing from model: ['intensity']"]),
+    (FEATURES[:3], ["extra in model: ['height_m']"]),
+    (["range_m", "n_points", "score", "height_m"], ["reordered", "'range_m' expected at 0, model has it at 1"]),
+    (["n_points", "score", "range_m", "width"], ["missing from model: ['width']", "extra in model: ['height_m']",
+                                                "reordered"]),
+])
+def test_schema_mismatch(saved_clf, no_unpickle, expected, fragments):
+    path, _ = saved_clf
+    with pytest.raises(ModelStoreError) as ei:
+        load_model(path, expected_features=expected)
+    msg = str(ei.value)
+    assert "feature schema mismatch" in msg and path.name in msg
+    for f in fragments:
+        assert f in msg
+
+
+def test_task_mismatch(saved_clf, no_unpickle):
+    path, _ = saved_clf
+    with pytest.raises(ModelStoreError, match="task mismatch: expected 'regression', model is 'classification'"):
+        load_model(path, expected_task="regression")
+
+
+def test_unknown_format(saved_clf, no_unpickle):
+    path, _ = saved_clf
+    _rewrite_manifest(path, format="onnx")
+    with pytest.raises(ModelStoreError, match="unknown format 'onnx'"):
+        load_model(path)
+
+
+def test_manifest_for_other_file(saved_clf, no_unpickle):
+    path, _ = saved_clf
+    _rewrite_manifest(path, model_file="other.joblib")
+    with pytest.raises(ModelStoreError, match="describes model_file 'other.joblib'"):
+        load_model(path)
+
+
+@pytest.mark.parametrize("content", ["{not json", "[]", json.dumps({"model_file": "x"})])
+def test_corrupt_manifest(saved_clf, no_unpickle, content):
+    path, _ = saved_clf
+    manifest_path_for(path).write_text(content)
+    with pytest.raises(ModelStoreError, match="manifest"):
+        load_model(path)
+
+
+def test_version_difference_warns_but_loads(saved_clf, data):
+    path, model = saved_clf
+    m = _manifest(path)
+    m["library_versions"]["scikit-learn"] = "0.1.0"
+    _rewrite_manifest(path, library_versions=m["library_versions"])
+    with pytest.warns(ModelStoreWarning, match="scikit-learn 0.1.0"):
+        lm = load_model(path)
+    X_test = data[3]
+    assert np.array_equal(lm.predict(X_test), model.predict_proba(X_test)[:, 1])
+
+
+def test_same_versions_do_not_warn(saved_clf):
+    path, _ = saved_clf
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", ModelStoreWarning)
+        load_model(path)
+
+
+# -- predict-time checks ------------------------------------------------------------------
+
+
+def test_wrong_column_count(saved_clf):
+    path, _ = saved_clf
+    lm = load_model(path)
+    with pytest.raises(ModelStoreError, match="X has 3 columns, model expects 4"):
+        lm.predict(np.zeros((2, 3)))
+    with pytest.raises(ModelStoreError, match="2-D"):
+        lm.predict(np.zeros(4))
+
+
+def test_empty_X(tmp_path, saved_clf, data):
+    path, _ = saved_clf
+    lm = load_model(path)
+    for X in (np.zeros((0, 4)), np.zeros(0), []):
+        out = lm.predict_confidence(X)
+        assert out.shape == (0,) and out.dtype == np.float64
+    Xd, _, y, _ = data
+    rpath = tmp_path / "r.json"
+    save_model(xgb.XGBRegressor(n_estimators=2).fit(Xd, y), rpath, feature_names=FEATURES,
+               task="regression")
+    assert load_model(rpath).predict_value(np.zeros((0, 4))).shape == (0,)
+
+
+def test_task_specific_predict(saved_clf):
+    path, _ = saved_clf
+    lm = load_model(path)
+    with pytest.raises(ModelStoreError, match="predict_value on a classification model"):
+        lm.predict_value(np.zeros((1, 4)))
+
+
+# -- save-time checks and atomicity ----------------------------------------------------------
+
+
+def test_save_validation(tmp_path, data):
+    X, y, y_reg, _ = data
+    clf = LogisticRegression().fit(X, y)
+    with pytest.raises(ModelStoreError, match="fitted on 4 features"):
+        save_model(clf, tmp_path / "m.joblib", feature_names=FEATURES[:2], task="classification")
+    with pytest.raises(ModelStoreError, match="duplicate"):
+        save_model(clf, tmp_path / "m.joblib", feature_names=["a", "a", "b", "c"], task="classification")
+    with pytest.raises(ModelStoreError, match="task must be"):
+        save_model(clf, tmp_path / "m.joblib", feature_names=FEATURES, task="ranking")
+    with pytest.raises(ModelStoreError, match="no predict_proba"):
+        save_model(Ridge().fit(X, y_reg), tmp_path / "m.joblib", feature_names=FEATURES,
+                   task="classification")
+    three = LogisticRegression().fit(X, np.digitize(X[:, 0], [-0.5, 0.5]))
+    with pytest.raises(ModelStoreError, match="only binary"):
+        save_model(three, tmp_path / "m.joblib", feature_names=FEATURES, task="classification")
+    with pytest.raises(ModelStoreError, match="unknown format"):
+        save_model(clf, tmp_path / "m.joblib", feature_names=FEATURES, task="classification",
+                   format="pickle")
+    assert list(tmp_path.iterdir()) == []
+
+
+class _Unpicklable:
+    classes_ = np.array([0, 1])
+    n_features_in_ = 4
+
+    def predict_proba(self, X):  # pragma: no cover - never called
+        return np.zeros((len(X), 2))
+
+    def __reduce__(self):
+        raise RuntimeError("cannot pickle")
+
+
+def test_failed_save_keeps_previous_pair(saved_clf, data):
+    path, model = saved_clf
+    before = (path.read_bytes(), manifest_path_for(path).read_text())
+    with pytest.raises(RuntimeError, match="cannot pickle"):
+        save_model(_Unpicklable(), path, feature_names=FEATURES, task="classification")
+    assert (path.read_bytes(), manifest_path_for(path).read_text()) == before
+    assert sorted(p.name for p in path.parent.iterdir()) == [path.name, path.name + MANIFEST_SUFFIX]
+    X_test = data[3]
+    assert np.array_equal(load_model(path).predict(X_test), model.predict_proba(X_test)[:, 1])
+
+
+def test_overwrite_updates_pair(saved_clf, data):
+    path, _ = saved_clf
+    X, y, _, X_test = data
+    new = GradientBoostingClassifier(n_estimators=5, random_state=1).fit(X, y)
+    save_model(new, path, feature_names=FEATURES, task="classification")
+    assert np.array_equal(load_model(path).predict(X_test), new.predict_proba(X_test)[:, 1])
+
+
+def test_model_file_is_world_readable(saved_clf):
+    path, _ = saved_clf
+    assert path.stat().st_mode & 0o044 == 0o044
+    assert Path(manifest_path_for(path)).stat().st_mode & 0o044 == 0o044

@@ -1,0 +1,88 @@
+"""lmd_node shell: parameters, sensor QoS inputs, pass-through, bad input, clean shutdown."""
+import numpy as np
+import pytest
+from diagnostic_msgs.msg import DiagnosticArray
+from lidar_quality_core.boxes import arrays_to_detections
+from lidar_quality_core.pointcloud import create_xyz_cloud
+from lmd_ros.lmd_node import LmdNode
+from node_shell_checks import (assert_declared_with_descriptions, assert_sensor_qos,
+                               assert_yaml_matches_declared, diag_values,
+                               run_executable_and_signal)
+from rclpy.qos import ReliabilityPolicy
+from sensor_msgs.msg import PointCloud2
+from std_msgs.msg import Header
+from vision_msgs.msg import Detection3DArray
+
+
+def _frame(sec, n_boxes=3, seed=0):
+    rng = np.random.default_rng(seed)
+    h = Header(frame_id="lidar_top")
+    h.stamp.sec = sec
+    cloud = create_xyz_cloud(h, rng.normal(size=(2000, 3)).astype(np.float32),
+                             rng.random(2000).astype(np.float32))
+    boxes = np.column_stack([rng.normal(size=(n_boxes, 3)), np.full((n_boxes, 3), 2.0),
+                             rng.uniform(-3, 3, n_boxes)])
+    dets = arrays_to_detections(h, boxes, ["car"] * n_boxes, rng.random(n_boxes),
+                                ids=[f"det{sec}_{i}" for i in range(n_boxes)])
+    return cloud, dets
+
+
+def test_parameters(ros):
+    node = ros.start(LmdNode)
+    assert_declared_with_descriptions(node, {"use_proposals", "sync_mode", "sync_slop",
+                                             "sync_queue_size", "diagnostics_period"})
+    assert_yaml_matches_declared(node, "lmd_ros")
+
+
+def test_inputs_use_sensor_qos(ros):
+    node = ros.start(LmdNode, parameters={"use_proposals": True})
+    for topic in ("input/points", "input/detections", "input/proposals"):
+        assert_sensor_qos(node, topic)
+
+
+def test_detections_pass_through_in_order(ros):
+    ros.start(LmdNode)
+    pc = ros.sensor_publisher(PointCloud2, "input/points")
+    dp = ros.sensor_publisher(Detection3DArray, "input/detections")
+    out = ros.collector(Detection3DArray, "output/detections")
+    assert ros.wait_for_match(pc) and ros.wait_for_match(dp)
+    sent = []
+    for sec in range(1, 4):
+        cloud, dets = _frame(sec, n_boxes=sec + 1, seed=sec)
+        dp.publish(dets)  # detections before the cloud: the synchroniser must wait
+        pc.publish(cloud)
+        sent.append(dets)
+        assert out.wait_for(sec, timeout=10.0)
+    for got, want in zip(out.messages, sent):
+        assert got.header == want.header
+        assert [d.id for d in got.detections] == [d.id for d in want.detections]
+        assert got == want
+
+
+def test_malformed_cloud_is_counted_not_fatal(ros):
+    node = ros.start(LmdNode, parameters={"diagnostics_period": 0.2})
+    pc = ros.sensor_publisher(PointCloud2, "input/points")
+    dp = ros.sensor_publisher(Detection3DArray, "input/detections")
+    out = ros.collector(Detection3DArray, "output/detections")
+    diag = ros.collector(DiagnosticArray, "/diagnostics")
+    assert ros.wait_for_match(pc) and ros.wait_for_match(dp)
+    cloud, dets = _frame(7)
+    cloud.data = cloud.data[:100]  # truncated buffer
+    pc.publish(cloud)
+    dp.publish(dets)
+    good_cloud, good_dets = _frame(8)
+    pc.publish(good_cloud)
+    dp.publish(good_dets)
+    assert out.wait_for(1, timeout=10.0)
+    assert out.messages[0].header.stamp.sec == 8
+    assert diag.wait_for(1, timeout=5.0)
+    assert node.diag.dropped == 1
+    values = diag_values(node.diag.status())
+    assert values["dropped.malformed_cloud"] == "1"
+    assert "input/points" in node.diag.status().message
+
+
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
+def test_executable_starts_and_stops_cleanly(ros, signame):
+    run_executable_and_signal(ros, "lmd_ros", "lmd_node", ["input/points", "input/detections"],
+                              signame)

@@ -1,0 +1,52 @@
+"""mimo_node shell: parameters, K head inputs with sensor QoS, matching, clean shutdown."""
+import time
+
+import numpy as np
+import pytest
+from lidar_quality_core.boxes import arrays_to_detections
+from mimo_ros.mimo_node import MimoNode
+from node_shell_checks import (assert_declared_with_descriptions, assert_sensor_qos,
+                               assert_yaml_matches_declared, diag_values,
+                               run_executable_and_signal)
+from std_msgs.msg import Header
+from vision_msgs.msg import Detection3DArray
+
+
+def test_parameters_and_head_inputs(ros):
+    node = ros.start(MimoNode, parameters={"num_heads": 3})
+    assert_declared_with_descriptions(node, {"num_heads", "sync_mode", "sync_slop",
+                                             "sync_queue_size", "diagnostics_period"})
+    assert_yaml_matches_declared(node, "mimo_ros")
+    for k in range(3):
+        assert_sensor_qos(node, f"input/head_{k}")
+    assert node.inputs.topics == ["input/head_0", "input/head_1", "input/head_2"]
+
+
+def test_num_heads_range(ros):
+    with pytest.raises(Exception, match="num_heads"):
+        ros.start(MimoNode, parameters={"num_heads": 0})
+
+
+def test_heads_are_matched_by_stamp(ros):
+    node = ros.start(MimoNode, parameters={"num_heads": 2})
+    pubs = [ros.sensor_publisher(Detection3DArray, f"input/head_{k}") for k in range(2)]
+    assert all(ros.wait_for_match(p) for p in pubs)
+    h = Header(frame_id="lidar")
+    boxes = np.array([[5.0, 1.0, 0.0, 4.0, 2.0, 1.5, 0.1]])
+    for sec in (1, 2):
+        h.stamp.sec = sec
+        for p in pubs:
+            p.publish(arrays_to_detections(h, boxes, ["car"], [0.9]))
+    h.stamp.sec = 3  # head 1 never sends frame 3
+    pubs[0].publish(arrays_to_detections(h, boxes, ["car"], [0.9]))
+    deadline = time.monotonic() + 10
+    while time.monotonic() < deadline and node.diag.frames_out < 2:
+        time.sleep(0.05)
+    assert node.diag.frames_out == 2
+    assert diag_values(node.diag.status())["sync.matched"] == "2"
+
+
+@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
+def test_executable_starts_and_stops_cleanly(ros, signame):
+    run_executable_and_signal(ros, "mimo_ros", "mimo_node", ["input/head_0", "input/head_1"],
+                              signame)
