@@ -7,6 +7,7 @@ subscriptions of the next one.
 """
 from __future__ import annotations
 
+import traceback
 from typing import Callable, Sequence
 
 from lidar_quality_core.time_sync import StampSynchronizer, SyncedSet, stamp_to_ns
@@ -27,6 +28,7 @@ class SyncedInputs:
                                       queue_size=queue_size)
         self._callback = callback
         self._diag = diagnostics
+        self._logger = node.get_logger()
         self._group = ReentrantCallbackGroup()
         self.subscriptions = [
             node.create_subscription(msg_type, topic, self._make_cb(i), qos,
@@ -44,8 +46,20 @@ class SyncedInputs:
                 self._diag.input_received(topic)
             stamp = msg.header.stamp
             for matched in self.sync.add(index, stamp_to_ns(stamp.sec, stamp.nanosec), msg):
-                self._callback(matched)
+                self._run(matched)
         return on_message
+
+    def _run(self, matched: SyncedSet) -> None:
+        # A bug or an unforeseen input must cost one frame, never the node.
+        try:
+            self._callback(matched)
+        except Exception as exc:  # noqa: BLE001
+            self._logger.error(f"frame at stamp {matched.stamp_ns} ns dropped: "
+                               f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}",
+                               throttle_duration_sec=5.0)
+            if self._diag is not None:
+                self._diag.frame_dropped("processing_error")
+                self._diag.warn("processing_error", f"processing error: {type(exc).__name__}: {exc}")
 
     def _stats(self) -> dict[str, str]:
         s = self.sync.stats()

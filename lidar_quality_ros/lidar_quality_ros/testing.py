@@ -17,11 +17,12 @@ import os
 import subprocess
 import threading
 import time
+import traceback
 from typing import Any
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import MultiThreadedExecutor
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.parameter import Parameter
 
 from .domain import DomainLease
@@ -65,14 +66,20 @@ class RosHarness:
         self.executor.add_node(self.node)
         self._nodes = [self.node]
         self._procs: list[subprocess.Popen] = []
+        self.errors: list[str] = []
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except Exception:  # noqa: BLE001 - the context was shut down under the executor
-            pass
+        # Keep spinning after a callback raised, but remember it: close() fails the test.
+        while self.context.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.1)
+            except ExternalShutdownException:
+                break
+            except Exception:  # noqa: BLE001
+                if self.context.ok():
+                    self.errors.append(traceback.format_exc())
 
     # nodes under test -------------------------------------------------------------
     def start(self, node_cls, parameters: dict[str, Any] | None = None, **kwargs):
@@ -133,6 +140,8 @@ class RosHarness:
         self.context.try_shutdown()
         self._thread.join(timeout=5.0)
         self.lease.release()
+        if self.errors:
+            raise AssertionError("callbacks raised in the ROS harness:\n" + "\n".join(self.errors))
 
     def __enter__(self):
         return self

@@ -30,3 +30,21 @@ def test_collector_times_out(ros):
 def test_loopback_environment():
     assert os.environ.get("ROS_AUTOMATIC_DISCOVERY_RANGE") == "LOCALHOST"
     assert "ROS_DOMAIN_ID" in os.environ
+
+
+def test_callback_exceptions_fail_the_test():
+    import pytest
+    harness = RosHarness()
+    pub = harness.publisher(String, "explode")
+
+    def boom(msg):
+        raise ValueError("callback bug")
+    harness.node.create_subscription(String, "explode", boom, 10)
+    assert harness.wait_for_match(pub)
+    pub.publish(String(data="x"))
+    import time
+    deadline = time.monotonic() + 5
+    while not harness.errors and time.monotonic() < deadline:
+        time.sleep(0.02)
+    with pytest.raises(AssertionError, match="callback bug"):
+        harness.close()

@@ -1,0 +1,108 @@
+"""Detection3DArray <-> arrays: yaw from any quaternion, per-box rejection with reasons."""
+import math
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from lidar_quality_core.boxes import (arrays_to_detections, detections_to_arrays,
+                                      quaternion_to_rpy, yaw_to_quaternion)
+from std_msgs.msg import Header
+from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesisWithPose
+
+
+def _det(center=(1.0, 2.0, 0.5), size=(4.0, 2.0, 1.5), quat=(0.0, 0.0, 0.0, 1.0),
+         hyps=(("car", 0.9),), det_id="d"):
+    d = Detection3D(id=det_id)
+    p, o, s = d.bbox.center.position, d.bbox.center.orientation, d.bbox.size
+    p.x, p.y, p.z = center
+    s.x, s.y, s.z = size
+    o.x, o.y, o.z, o.w = quat
+    for cls, score in hyps:
+        h = ObjectHypothesisWithPose()
+        h.hypothesis.class_id, h.hypothesis.score = cls, score
+        d.results.append(h)
+    return d
+
+
+def test_roundtrip_arrays_message_arrays():
+    boxes = np.array([[1, 2, 0.5, 4, 2, 1.5, 0.3], [-5, 7, 1, 0.6, 0.5, 1.7, -2.9]])
+    msg = arrays_to_detections(Header(frame_id="f"), boxes, ["car", "pedestrian"], [0.8, 0.4],
+                               ids=["a", "b"])
+    arr = detections_to_arrays(msg)
+    np.testing.assert_allclose(arr.boxes, boxes, atol=1e-12)
+    assert arr.labels == ["car", "pedestrian"] and arr.ids == ["a", "b"]
+    np.testing.assert_allclose(arr.scores, [0.8, 0.4])
+    assert arr.valid.all() and arr.reasons == ["", ""]
+    np.testing.assert_allclose(arr.roll_pitch, 0.0, atol=1e-12)
+
+
+def test_top_hypothesis_and_class_distribution():
+    arr = detections_to_arrays([_det(hyps=(("car", 0.2), ("truck", 0.7), ("bus", 0.1))),
+                                _det(hyps=(("car", 0.6),))])
+    assert arr.labels == ["truck", "car"]
+    np.testing.assert_allclose(arr.scores, [0.7, 0.6])
+    np.testing.assert_allclose(arr.class_scores["car"], [0.2, 0.6])
+    assert np.isnan(arr.class_scores["truck"][1])
+
+
+def test_covariance_and_class_scores_written():
+    msg = arrays_to_detections(Header(), np.zeros((1, 7)) + [0, 0, 0, 1, 1, 1, 0], None, None,
+                               class_scores={"car": np.array([0.7]), "van": np.array([0.3])},
+                               covariance_diagonal=np.array([[1, 2, 3, 0, 0, 4.0]]))
+    res = msg.detections[0].results
+    assert [(r.hypothesis.class_id, r.hypothesis.score) for r in res] == [("car", 0.7), ("van", 0.3)]
+    cov = np.asarray(res[0].pose.covariance).reshape(6, 6)
+    np.testing.assert_allclose(np.diag(cov), [1, 2, 3, 0, 0, 4])
+
+
+def test_invalid_boxes_rejected_with_reason():
+    dets = [_det(),
+            _det(size=(4.0, 0.0, 1.5)),
+            _det(center=(math.nan, 0, 0)),
+            _det(quat=(0, 0, 0, 0)),
+            _det(hyps=()),
+            _det(size=(math.inf, 1, 1)),
+            _det(hyps=(("car", math.nan),)),
+            _det(quat=(0, 0, math.nan, 1))]
+    arr = detections_to_arrays(Detection3DArray(detections=dets))
+    assert arr.valid.tolist() == [True] + [False] * 7
+    assert arr.reasons[1] == "size <= 0"
+    assert arr.reasons[2] == "non-finite centre"
+    assert arr.reasons[3] == "zero quaternion"
+    assert arr.reasons[4] == "no hypothesis in results"
+    assert arr.reasons[5] == "non-finite size"
+    assert arr.reasons[6] == "non-finite score"
+    assert arr.reasons[7] == "non-finite orientation"
+    assert len(arr) == 8  # rejected rows stay, so outputs can be matched to inputs
+
+
+def test_empty():
+    arr = detections_to_arrays(Detection3DArray())
+    assert arr.boxes.shape == (0, 7) and len(arr) == 0 and arr.valid.shape == (0,)
+
+
+def _quat_from_rpy(r, p, y):
+    cr, sr, cp, sp, cy, sy = (math.cos(r / 2), math.sin(r / 2), math.cos(p / 2),
+                              math.sin(p / 2), math.cos(y / 2), math.sin(y / 2))
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)
+
+
+angle = st.floats(-math.pi + 1e-3, math.pi - 1e-3)
+
+
+@settings(max_examples=200, deadline=None)
+@given(r=st.floats(-1.4, 1.4), p=st.floats(-1.4, 1.4), y=angle,
+       scale=st.floats(0.1, 10.0), flip=st.booleans())
+def test_yaw_from_any_quaternion(r, p, y, scale, flip):
+    q = np.array(_quat_from_rpy(r, p, y)) * scale * (-1 if flip else 1)  # q and -q: same rotation
+    rpy = quaternion_to_rpy(q[None])[0]
+    np.testing.assert_allclose(rpy, [r, p, y], atol=1e-7)
+    arr = detections_to_arrays([_det(quat=tuple(q))])
+    assert math.isclose(arr.boxes[0, 6], y, abs_tol=1e-7)
+    np.testing.assert_allclose(arr.roll_pitch[0], [r, p], atol=1e-7)
+
+
+@given(y=angle)
+def test_yaw_quaternion_inverse(y):
+    assert math.isclose(quaternion_to_rpy(yaw_to_quaternion(np.array([y])))[0, 2], y, abs_tol=1e-9)
