@@ -32,7 +32,9 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
         code = 2
     finally:
         if node is not None:
-            node.get_logger().info("shutting down")
+            # The node's own logger would also publish to /rosout, whose context may
+            # already be shut down by the signal.
+            rclpy.logging.get_logger(node.get_name()).info("shutting down")
             node.destroy_node()
         rclpy.try_shutdown()
     return code

@@ -34,6 +34,7 @@ class Collector:
 
     def __init__(self):
         self.messages: list = []
+        self.subscription = None
         self.receive_times: list[float] = []
         self._cond = threading.Condition()
 
@@ -108,7 +109,8 @@ class RosHarness:
 
     def collector(self, msg_type, topic: str, qos=None) -> Collector:
         col = Collector()
-        self.node.create_subscription(msg_type, topic, col, qos if qos is not None else output_qos(50))
+        col.subscription = self.node.create_subscription(
+            msg_type, topic, col, qos if qos is not None else output_qos(50))
         return col
 
     def sensor_publisher(self, msg_type, topic: str):

@@ -365,7 +365,7 @@ def test_empty_clouds():
     assert cloud_to_structured(m2).shape == (3, 0)
 
 
-# --------------------------------------------------------------------------- zero copy / data types
+# ------------------------------------------------------------------ zero copy / data types
 
 def test_zero_copy_view_shares_message_buffer():
     msg = create_xyz_cloud(None, np.arange(30, dtype=np.float32).reshape(10, 3))
@@ -388,6 +388,43 @@ def test_build_leaves_no_buffer_export():
     create_cloud(None, arr).data.extend([0])
 
 
+def test_create_cloud_passes_check_fields(monkeypatch):
+    """Message built with type checking on: every field value has the exact ROS Python type."""
+    import sensor_msgs.msg._point_cloud2 as gen_cloud
+    import sensor_msgs.msg._point_field as gen_field
+
+    monkeypatch.setattr(gen_cloud, "ros_python_check_fields", "1")
+    monkeypatch.setattr(gen_field, "ros_python_check_fields", "1")
+    arr = np.zeros((2, 3), [("x", "f4"), ("y", "f4"), ("z", "f4"), ("rgb", "u1", (3,))])
+    arr["x"] = np.arange(6).reshape(2, 3)
+    for fields in (arr, {"x": np.arange(3, dtype=np.float32), "c": np.ones((3, 2), np.uint16)}):
+        msg = create_cloud(None, fields)
+        assert msg._check_fields
+        assert type(msg.data) is array.array and msg.data.typecode == "B"
+        for key in ("height", "width", "point_step", "row_step"):
+            assert type(getattr(msg, key)) is int, key
+        assert all(type(f.offset) is int and type(f.count) is int for f in msg.fields)
+    np.testing.assert_array_equal(cloud_to_structured(create_cloud(None, arr))["x"], arr["x"])
+
+
+def test_rclpy_serialization_round_trip():
+    """What a publisher sends and a subscriber receives decodes identically (and zero-copy)."""
+    serialization = pytest.importorskip("rclpy.serialization")
+    rng = np.random.default_rng(7)
+    xyz = rng.random((1000, 3)).astype(np.float32)
+    xyz[::7, 2] = np.nan
+    msg = create_xyz_cloud(Header(frame_id="lidar"), xyz, intensity=rng.random(1000),
+                           ring=(np.arange(1000) % 32).astype(np.uint16))
+    wire = serialization.serialize_message(msg)
+    got = serialization.deserialize_message(wire, PointCloud2)
+    assert type(got.data) is array.array and bytes(got.data) == bytes(msg.data)
+    assert got.header.frame_id == "lidar" and got.is_dense is False
+    s = cloud_to_structured(got)
+    assert np.shares_memory(s, np.frombuffer(got.data, np.uint8))
+    np.testing.assert_array_equal(bits(xyz_intensity(got)[0]), bits(xyz))
+    np.testing.assert_array_equal(s["ring"], np.arange(1000) % 32)
+
+
 def _xyz_bytes():
     ref = np.arange(12, dtype="<f4")
     return ref, ref.tobytes()
@@ -400,7 +437,13 @@ def test_message_setter_data_types(kind):
     value = {"bytes": raw, "bytearray": bytearray(raw), "array": array.array("B", raw),
              "list": list(raw), "ndarray": np.frombuffer(raw, np.uint8).copy(),
              "memoryview": memoryview(raw)}[kind]
-    msg = make_msg([pf("x", 0, 7), pf("y", 4, 7), pf("z", 8, 7)], value, width=4, point_step=12)
+    fields = [pf("x", 0, 7), pf("y", 4, 7), pf("z", 8, 7)]
+    if kind == "ndarray" and PointCloud2()._check_fields:
+        # With ROS_PYTHON_CHECK_FIELDS=1 the setter insists on Python ints.
+        with pytest.raises(AssertionError):
+            make_msg(fields, value, width=4, point_step=12)
+        return
+    msg = make_msg(fields, value, width=4, point_step=12)
     assert type(msg.data) is array.array
     np.testing.assert_array_equal(xyz_intensity(msg)[0], ref.reshape(4, 3))
 
@@ -441,7 +484,8 @@ def test_bad_data_values():
 
 def test_error_unknown_datatype():
     for code in (0, 9):
-        with pytest.raises(CloudFormatError, match=rf"field 'bad' has unknown PointField datatype {code}"):
+        with pytest.raises(CloudFormatError,
+                           match=rf"field 'bad' has unknown PointField datatype {code}"):
             cloud_dtype([pf("x", 0, 7), pf("bad", 4, code)], 8)
 
 
@@ -455,7 +499,8 @@ def test_error_field_past_point_step():
 
 
 def test_error_overlapping_fields():
-    with pytest.raises(CloudFormatError, match=r"'x' \(bytes 0..4\) and 'y' \(bytes 2..6\) overlap"):
+    with pytest.raises(CloudFormatError,
+                       match=r"'x' \(bytes 0..4\) and 'y' \(bytes 2..6\) overlap"):
         cloud_dtype([pf("y", 2, 7), pf("x", 0, 7)], 8)
     with pytest.raises(CloudFormatError, match="overlap"):
         cloud_dtype([pf("v", 0, 4, 3), pf("w", 4, 2)], 8)
@@ -491,7 +536,8 @@ def test_error_row_step_too_small():
 
 def test_error_inconsistent_sizes():
     msg = make_msg([pf("x", 0, 7)], bytes(16), width=3, point_step=4)
-    with pytest.raises(CloudFormatError, match=r"data holds 16 bytes but height 1 x row_step 12 = 12"):
+    with pytest.raises(CloudFormatError,
+                       match=r"data holds 16 bytes but height 1 x row_step 12 = 12"):
         cloud_to_structured(msg)
     msg = make_msg([pf("x", 0, 7)], bytes(4), width=0, point_step=4)
     with pytest.raises(CloudFormatError, match="data holds 4 bytes but height 1 x row_step 0 = 0"):
@@ -500,7 +546,8 @@ def test_error_inconsistent_sizes():
 
 def test_error_missing_field_names_available():
     msg = create_xyz_cloud(None, np.zeros((2, 3)))
-    with pytest.raises(CloudFormatError, match=r"field 'ring' not in cloud; available fields: x, y, z"):
+    with pytest.raises(CloudFormatError,
+                       match=r"field 'ring' not in cloud; available fields: x, y, z"):
         read_fields(msg, ["x", "ring"])
     only_xy = create_cloud(None, {"x": np.zeros(2, np.float32), "y": np.zeros(2, np.float32)})
     with pytest.raises(CloudFormatError, match=r"field 'z' not in cloud; available fields: x, y"):
@@ -667,7 +714,8 @@ def read_pcd(path: Path):
 def realdata():
     d = realdata_dir()
     if not d.is_dir():
-        pytest.skip(f"real PCD clouds not found at {d} (set LQ_REALDATA to the realdata directory)")
+        pytest.skip(f"real PCD clouds not found at {d} "
+                    "(set LQ_REALDATA to the realdata directory)")
     return d
 
 

@@ -1,0 +1,414 @@
+"""sensor_msgs/PointCloud2 <-> numpy (zero-copy decoding, single-copy building).
+
+Decoding returns structured views of ``msg.data`` (no copy); building fills one packed
+structured buffer that becomes ``msg.data`` directly. No rclpy import: the message
+classes are imported lazily, only when building.
+"""
+from __future__ import annotations
+
+import array
+import functools
+import sys
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+__all__ = [
+    "CloudFormatError",
+    "INT8", "UINT8", "INT16", "UINT16", "INT32", "UINT32", "FLOAT32", "FLOAT64",
+    "DATATYPE_TO_DTYPE",
+    "pointfield_datatype",
+    "cloud_dtype",
+    "cloud_to_structured",
+    "read_fields",
+    "xyz_intensity",
+    "finite_mask",
+    "create_cloud",
+    "create_xyz_cloud",
+]
+
+# sensor_msgs/PointField datatype codes (duplicated so decoding needs no ROS import).
+INT8, UINT8, INT16, UINT16, INT32, UINT32, FLOAT32, FLOAT64 = range(1, 9)
+
+#: PointField datatype code -> numpy dtype (native byte order).
+DATATYPE_TO_DTYPE: dict[int, np.dtype] = {
+    INT8: np.dtype(np.int8),
+    UINT8: np.dtype(np.uint8),
+    INT16: np.dtype(np.int16),
+    UINT16: np.dtype(np.uint16),
+    INT32: np.dtype(np.int32),
+    UINT32: np.dtype(np.uint32),
+    FLOAT32: np.dtype(np.float32),
+    FLOAT64: np.dtype(np.float64),
+}
+_DATATYPE_NAMES = {INT8: "INT8", UINT8: "UINT8", INT16: "INT16", UINT16: "UINT16",
+                   INT32: "INT32", UINT32: "UINT32", FLOAT32: "FLOAT32", FLOAT64: "FLOAT64"}
+_KIND_SIZE_TO_DATATYPE = {(dt.kind, dt.itemsize): code for code, dt in DATATYPE_TO_DTYPE.items()}
+_NATIVE_BIG = sys.byteorder == "big"
+
+
+class CloudFormatError(ValueError):
+    """A PointCloud2 layout or a numpy array that cannot be converted."""
+
+
+def pointfield_datatype(dtype) -> int:
+    """PointField datatype code of a numpy scalar dtype (any byte order).
+
+    ``bool`` maps to UINT8 (decodes back as uint8 0/1). 64-bit integers, float16,
+    complex, strings, objects and structured/sub-array dtypes raise CloudFormatError.
+    """
+    dt = np.dtype(dtype)
+    if dt.kind == "b":
+        return UINT8
+    code = _KIND_SIZE_TO_DATATYPE.get((dt.kind, dt.itemsize)) if dt.fields is None else None
+    if code is None or dt.subdtype is not None:
+        raise CloudFormatError(
+            f"numpy dtype {dt} has no PointField datatype "
+            "(supported: int8/16/32, uint8/16/32, float32/64, bool)")
+    return code
+
+
+def _is_big(dt: np.dtype) -> bool | None:
+    """Byte order of a scalar dtype; None when it has none (1-byte types)."""
+    if dt.itemsize == 1 or dt.byteorder == "|":
+        return None
+    return dt.byteorder == ">" or (dt.byteorder == "=" and _NATIVE_BIG)
+
+
+@functools.lru_cache(maxsize=256)
+def _dtype_from_key(key: tuple, point_step: int | None, is_bigendian: bool) -> np.dtype:
+    # Cached because decoding a stream re-derives the same layout every message.
+    order = ">" if is_bigendian else "<"
+    names, formats, offsets, spans = [], [], [], []
+    seen: set[str] = set()
+    for name, offset, datatype, count in key:
+        if name in seen:
+            raise CloudFormatError(f"duplicate field name {name!r} in PointCloud2 fields")
+        seen.add(name)
+        base = DATATYPE_TO_DTYPE.get(datatype)
+        if base is None:
+            raise CloudFormatError(
+                f"field {name!r} has unknown PointField datatype {datatype} "
+                "(expected 1..8: INT8=1 UINT8=2 INT16=3 UINT16=4 INT32=5 UINT32=6 "
+                "FLOAT32=7 FLOAT64=8)")
+        if offset < 0 or count < 0:
+            raise CloudFormatError(f"field {name!r} has negative offset {offset} or count {count}")
+        if count == 0:
+            continue  # no bytes on the wire, nothing to view
+        end = offset + base.itemsize * count
+        if point_step is not None and end > point_step:
+            raise CloudFormatError(
+                f"field {name!r} ({_DATATYPE_NAMES[datatype]} x {count} at offset {offset}) "
+                f"ends at byte {end}, past point_step {point_step}")
+        base = base.newbyteorder(order)
+        names.append(name)
+        formats.append(base if count == 1 else np.dtype((base, (count,))))
+        offsets.append(offset)
+        spans.append((offset, end, name))
+    spans.sort()
+    for (s0, e0, n0), (s1, e1, n1) in zip(spans, spans[1:]):
+        if s1 < e0:
+            raise CloudFormatError(
+                f"fields {n0!r} (bytes {s0}..{e0}) and {n1!r} (bytes {s1}..{e1}) overlap")
+    itemsize = point_step if point_step is not None else max((e for _, e, _ in spans), default=0)
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                     "itemsize": itemsize})
+
+
+def _fields_key(fields) -> tuple:
+    return tuple((str(f.name), int(f.offset), int(f.datatype), int(f.count)) for f in fields)
+
+
+def cloud_dtype(fields, point_step: int, is_bigendian: bool = False) -> np.dtype:
+    """Structured dtype of one point: explicit offsets, ``itemsize == point_step``.
+
+    ``fields`` are PointField-like objects (name, offset, datatype, count); count > 1
+    gives a sub-array field of shape (count,), count == 0 fields are skipped.
+    """
+    return _dtype_from_key(_fields_key(fields), int(point_step), bool(is_bigendian))
+
+
+def _as_uint8(values: np.ndarray) -> np.ndarray:
+    """Byte values (any integer array) -> uint8, refusing values outside 0..255."""
+    if values.dtype == np.uint8:
+        return values
+    if values.dtype.kind in "iub" and values.dtype.itemsize == 1:
+        return values.view(np.uint8)  # int8/bool already are raw bytes
+    if values.size == 0:
+        return np.empty(values.shape, np.uint8)
+    if values.dtype.kind not in "iu":
+        raise CloudFormatError(f"PointCloud2 data must hold byte values, got dtype {values.dtype}")
+    if values.min() < 0 or values.max() > 255:
+        raise CloudFormatError("PointCloud2 data holds values outside 0..255")
+    return values.astype(np.uint8)
+
+
+def _data_bytes(data) -> np.ndarray:
+    """1-D uint8 view of a message data buffer (copies only lists/non-contiguous input)."""
+    if isinstance(data, np.ndarray):
+        return np.ascontiguousarray(_as_uint8(data)).reshape(-1)
+    try:
+        # array.array('B') (what Jazzy messages hold), bytes, bytearray, memoryview.
+        return np.frombuffer(data, np.uint8)
+    except (TypeError, ValueError, BufferError):
+        pass
+    try:
+        values = np.asarray(data)
+    except (TypeError, ValueError, OverflowError) as exc:
+        raise CloudFormatError(
+            f"cannot read PointCloud2 data of type {type(data).__name__}") from exc
+    if values.dtype.kind not in "iub" and values.size:
+        raise CloudFormatError(
+            f"cannot read PointCloud2 data of type {type(data).__name__} (dtype {values.dtype})")
+    return _as_uint8(values).reshape(-1)
+
+
+def cloud_to_structured(msg) -> np.ndarray:
+    """Zero-copy structured view of ``msg.data``.
+
+    Shape ``(height, width)`` for organized clouds (height > 1), else ``(height*width,)``.
+    Row padding (row_step > width*point_step) is handled with strides. The view is
+    writable when ``msg.data`` is (array.array, bytearray); while it lives, an
+    array.array ``msg.data`` cannot be resized (Python's buffer export rule).
+    """
+    height, width = int(msg.height), int(msg.width)
+    point_step, row_step = int(msg.point_step), int(msg.row_step)
+    big = bool(msg.is_bigendian)
+    buf = _data_bytes(msg.data)
+    n = height * width
+    shape = (height, width) if height > 1 else (n,)
+    if n and point_step == 0:
+        raise CloudFormatError(f"point_step is 0 but the cloud has {n} points "
+                               f"(height {height} x width {width})")
+    packed_row = width * point_step
+    if row_step < packed_row:
+        raise CloudFormatError(
+            f"row_step {row_step} < width {width} x point_step {point_step} = {packed_row}")
+    # The last row needs no trailing row padding.
+    need = row_step * (height - 1) + packed_row if height else 0
+    full = row_step * height
+    if buf.size < need:
+        raise CloudFormatError(
+            f"truncated data: {buf.size} bytes, need {need} "
+            f"(height {height}, width {width}, point_step {point_step}, row_step {row_step})")
+    if buf.size > full:
+        raise CloudFormatError(
+            f"inconsistent sizes: data holds {buf.size} bytes but height {height} x "
+            f"row_step {row_step} = {full}")
+    if n == 0:
+        # An empty message may leave point_step 0; size the dtype from the fields then.
+        return np.empty(shape, _dtype_from_key(_fields_key(msg.fields), point_step or None, big))
+    dtype = cloud_dtype(msg.fields, point_step, big)
+    if height == 1 or row_step == packed_row:
+        return np.frombuffer(buf, dtype, count=n).reshape(shape)
+    return np.ndarray(shape, dtype, buffer=buf, offset=0, strides=(row_step, point_step))
+
+
+def _missing(name: str, dtype: np.dtype) -> CloudFormatError:
+    avail = ", ".join(dtype.names) if dtype.names else "(none)"
+    return CloudFormatError(f"field {name!r} not in cloud; available fields: {avail}")
+
+
+def read_fields(msg, names, dtype=np.float32) -> np.ndarray:
+    """Selected fields as a C-contiguous ``(N, k)`` array, rows flattened (N = height*width).
+
+    A field with count c contributes c consecutive columns. Values are cast to ``dtype``.
+    """
+    if isinstance(names, str):
+        names = (names,)
+    arr = cloud_to_structured(msg)
+    fields = arr.dtype.fields or {}
+    widths = []
+    for name in names:
+        if name not in fields:
+            raise _missing(name, arr.dtype)
+        sub = fields[name][0].shape
+        widths.append(sub[0] if sub else 1)
+    out = np.empty((arr.size, sum(widths)), dtype)
+    # Column-wise copies: numpy copies (N, 3)-shaped strided blocks far slower
+    # (inner loop of length 3) than three length-N strided columns.
+    dst = out.reshape(arr.shape + (out.shape[1],))
+    j = 0
+    for name, c in zip(names, widths):
+        src = arr[name]
+        if c == 1 and src.ndim == arr.ndim:
+            dst[..., j] = src
+        else:
+            for i in range(c):
+                dst[..., j + i] = src[..., i]
+        j += c
+    return out
+
+
+def xyz_intensity(msg, intensity_names: Sequence[str] = ("intensity", "reflectance", "i")):
+    """``(xyz float32 (N, 3), intensity float32 (N,) or None)`` from a cloud.
+
+    The intensity is the first of ``intensity_names`` present in the cloud.
+    """
+    arr = cloud_to_structured(msg)
+    fields = arr.dtype.fields or {}
+    for name in ("x", "y", "z"):
+        if name not in fields:
+            raise _missing(name, arr.dtype)
+        if fields[name][0].shape:
+            raise CloudFormatError(
+                f"field {name!r} has count {fields[name][0].shape[0]}, expected 1")
+    xyz = np.empty((arr.size, 3), np.float32)
+    dst = xyz.reshape(arr.shape + (3,))
+    dst[..., 0] = arr["x"]
+    dst[..., 1] = arr["y"]
+    dst[..., 2] = arr["z"]
+    inten_name = next((nm for nm in intensity_names if nm in fields), None)
+    if inten_name is None:
+        return xyz, None
+    if fields[inten_name][0].shape:
+        raise CloudFormatError(
+            f"field {inten_name!r} has count {fields[inten_name][0].shape[0]}, expected 1")
+    return xyz, np.array(arr[inten_name], dtype=np.float32).reshape(-1)
+
+
+def finite_mask(xyz: np.ndarray) -> np.ndarray:
+    """Boolean mask of points (rows over the last axis) whose coordinates are all finite."""
+    xyz = np.asarray(xyz)
+    if xyz.ndim < 1 or xyz.shape[-1] == 0:
+        raise ValueError(f"finite_mask expects (..., k>0) coordinates, got shape {xyz.shape}")
+    # Per-column isfinite is ~20x faster than isfinite(xyz).all(axis=-1) on (N, 3).
+    mask = np.isfinite(xyz[..., 0])
+    for j in range(1, xyz.shape[-1]):
+        mask &= np.isfinite(xyz[..., j])
+    return mask
+
+
+def _alloc_bytes(nbytes: int) -> array.array:
+    # Repeating a 1-element array is a memset: the cheapest zeroed array.array('B').
+    return array.array("B", b"\0") * nbytes
+
+
+def _set_data(msg, buf: array.array) -> None:
+    # The generated Jazzy setter re-copies through array.array('B', value) unless
+    # check_fields is on; buf already has exactly that type, so store it as is.
+    try:
+        msg._data = buf
+    except AttributeError:
+        pass
+    if msg.data is not buf:
+        msg.data = buf
+
+
+def _columns_of(fields) -> tuple[list, tuple[int, int]]:
+    """(name, source view, base dtype, count) list and the (height, width) of the cloud."""
+    cols = []
+    if isinstance(fields, np.ndarray):
+        if fields.dtype.names is None:
+            raise CloudFormatError(
+                f"create_cloud needs a structured array or a dict of columns, got dtype "
+                f"{fields.dtype} (use create_xyz_cloud for an (N, 3) array)")
+        if fields.ndim == 1:
+            hw = (1, fields.shape[0])
+        elif fields.ndim == 2:
+            hw = fields.shape
+        else:
+            raise CloudFormatError(
+                f"structured array must be (N,) or (H, W), got shape {fields.shape}")
+        for name in fields.dtype.names:
+            ft = fields.dtype.fields[name][0]
+            base, sub = (ft.subdtype if ft.subdtype is not None else (ft, ()))
+            if len(sub) > 1:
+                raise CloudFormatError(
+                    f"field {name!r} has sub-array shape {sub}; only (count,) is supported")
+            cols.append((name, fields[name], base, sub[0] if sub else 1))
+        return cols, hw
+    if not isinstance(fields, Mapping):
+        raise CloudFormatError(
+            f"create_cloud needs a structured array or a dict, got {type(fields).__name__}")
+    n = None
+    for name, values in fields.items():
+        if not isinstance(name, str):
+            raise CloudFormatError(f"field names must be str, got {name!r}")
+        col = np.asarray(values)
+        if col.ndim not in (1, 2) or (col.ndim == 2 and col.shape[1] == 0):
+            raise CloudFormatError(
+                f"column {name!r} must be (N,) or (N, count>0), got shape {col.shape}")
+        if n is None:
+            n = col.shape[0]
+        elif col.shape[0] != n:
+            raise CloudFormatError(f"column {name!r} has {col.shape[0]} rows, expected {n} "
+                                   f"(all columns must have the same length)")
+        cols.append((name, col, col.dtype, col.shape[1] if col.ndim == 2 else 1))
+    return cols, (1, n or 0)
+
+
+def create_cloud(header, fields):
+    """Build a sensor_msgs/PointCloud2 from a structured array or a dict of columns.
+
+    ``fields``: structured array of shape (N,) or (H, W) (sub-array fields -> count), or
+    a dict ``name -> (N,)`` / ``(N, count)`` array. Fields are packed in order without
+    padding. ``is_bigendian`` follows the arrays (all multi-byte fields big-endian ->
+    big-endian message, mixed -> native). ``is_dense`` is False iff x, y or z holds a
+    non-finite value. ``header=None`` uses a default Header.
+    """
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    cols, (height, width) = _columns_of(fields)
+    orders = {_is_big(base) for _, _, base, _ in cols} - {None}
+    big = orders.pop() if len(orders) == 1 else _NATIVE_BIG
+    order = ">" if big else "<"
+    names, formats, offsets, pfields = [], [], [], []
+    offset = 0
+    for name, _, base, count in cols:
+        code = pointfield_datatype(base)
+        wire = DATATYPE_TO_DTYPE[code].newbyteorder(order)
+        names.append(name)
+        formats.append(wire if count == 1 else np.dtype((wire, (count,))))
+        offsets.append(offset)
+        pfields.append(PointField(name=name, offset=offset, datatype=code, count=count))
+        offset += wire.itemsize * count
+    point_step = offset
+    n = height * width
+    if n and not point_step:
+        raise CloudFormatError(f"cannot build a cloud of {n} points without fields")
+    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                      "itemsize": point_step})
+
+    src = fields if isinstance(fields, np.ndarray) else None
+    if src is not None and src.dtype == dtype and src.flags.c_contiguous:
+        buf = array.array("B")
+        buf.frombytes(src.reshape(-1).view(np.uint8))  # the single copy
+    else:
+        buf = _alloc_bytes(n * point_step)
+        if n:
+            dst = np.frombuffer(buf, dtype).reshape(src.shape if src is not None else (n,))
+            for name, col, _, _ in cols:
+                dst[name] = col  # casts byte order / bool in the same pass
+            del dst  # release the buffer export so msg.data stays resizable
+
+    is_dense = True
+    for name, col, base, _ in cols:
+        if name in ("x", "y", "z") and base.kind == "f" and not np.isfinite(col).all():
+            is_dense = False
+            break
+
+    if header is None:
+        from std_msgs.msg import Header
+        header = Header()
+    msg = PointCloud2(header=header, height=height, width=width, fields=pfields,
+                      is_bigendian=bool(big), point_step=point_step,
+                      row_step=point_step * width, is_dense=is_dense)
+    _set_data(msg, buf)
+    return msg
+
+
+def create_xyz_cloud(header, xyz, intensity=None, **extra_columns):
+    """PointCloud2 with float32 ``x, y, z`` (from an (N, 3) array), optional float32
+    ``intensity`` and any extra ``name=(N,) or (N, count)`` columns (dtypes kept)."""
+    xyz = np.asarray(xyz, dtype=np.float32)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise CloudFormatError(f"xyz must have shape (N, 3), got {xyz.shape}")
+    cols = {"x": xyz[:, 0], "y": xyz[:, 1], "z": xyz[:, 2]}
+    if intensity is not None:
+        cols["intensity"] = np.asarray(intensity, dtype=np.float32).reshape(-1)
+    for name, values in extra_columns.items():
+        if name in cols:
+            raise CloudFormatError(f"extra column {name!r} duplicates a built-in field")
+        cols[name] = values
+    return create_cloud(header, cols)
