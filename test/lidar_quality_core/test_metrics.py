@@ -70,6 +70,12 @@ def test_match_sklearn_random_continuous(seed):
     assert r2(yt, -yp) == pytest.approx(r2_score(yt, -yp), abs=1e-12)  # negative R^2
 
 
+def test_accuracy_threshold_is_inclusive():
+    assert accuracy([1, 0], [0.5, 0.49]) == 1.0
+    assert accuracy([1, 0, 1], [1, 0, 0]) == pytest.approx(2 / 3)  # hard labels
+    assert accuracy([1, 0], [0.7, 0.6], threshold=0.7) == 1.0
+
+
 def test_all_same_score():
     y = np.array([0, 1, 1, 0, 1])
     s = np.full(5, 0.42)
@@ -239,7 +245,7 @@ def test_ece_properties(pairs, n_bins):
     assert reliability_diagram(y, p, n_bins).counts.sum() == y.size
 
 
-# -- summary ----------------------------------------------------------------------------------------
+# -- summary -------------------------------------------------------------------------------
 
 
 def test_summary():

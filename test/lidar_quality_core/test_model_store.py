@@ -189,7 +189,8 @@ def test_xgboost_joblib_format_also_works(tmp_path, data):
     X, y, _, X_test = data
     model = xgb.XGBClassifier(n_estimators=5).fit(X, y)
     path = tmp_path / "x.joblib"
-    assert save_model(model, path, feature_names=FEATURES, task="classification")["format"] == "joblib"
+    m = save_model(model, path, feature_names=FEATURES, task="classification")
+    assert m["format"] == "joblib"
     np.testing.assert_allclose(load_model(path).predict(X_test), model.predict_proba(X_test)[:, 1])
 
 
@@ -233,7 +234,8 @@ def test_tampered_model_hash_mismatch(saved_clf, no_unpickle):
 def test_missing_manifest(saved_clf, no_unpickle):
     path, _ = saved_clf
     manifest_path_for(path).unlink()
-    with pytest.raises(ModelStoreError, match=r"missing manifest lmd_classifier\.joblib\.manifest\.json"):
+    with pytest.raises(ModelStoreError,
+                       match=r"missing manifest lmd_classifier\.joblib\.manifest\.json"):
         load_model(path)
 
 
@@ -253,9 +255,10 @@ def test_manifest_path_refused_as_model(saved_clf):
 @pytest.mark.parametrize("expected,fragments", [
     (FEATURES + ["intensity"], ["missing from model: ['intensity']"]),
     (FEATURES[:3], ["extra in model: ['height_m']"]),
-    (["range_m", "n_points", "score", "height_m"], ["reordered", "'range_m' expected at 0, model has it at 1"]),
-    (["n_points", "score", "range_m", "width"], ["missing from model: ['width']", "extra in model: ['height_m']",
-                                                "reordered"]),
+    (["range_m", "n_points", "score", "height_m"],
+     ["reordered", "'range_m' expected at 0, model has it at 1"]),
+    (["n_points", "score", "range_m", "width"],
+     ["missing from model: ['width']", "extra in model: ['height_m']", "reordered"]),
 ])
 def test_schema_mismatch(saved_clf, no_unpickle, expected, fragments):
     path, _ = saved_clf
@@ -269,7 +272,8 @@ def test_schema_mismatch(saved_clf, no_unpickle, expected, fragments):
 
 def test_task_mismatch(saved_clf, no_unpickle):
     path, _ = saved_clf
-    with pytest.raises(ModelStoreError, match="task mismatch: expected 'regression', model is 'classification'"):
+    with pytest.raises(ModelStoreError,
+                       match="task mismatch: expected 'regression', model is 'classification'"):
         load_model(path, expected_task="regression")
 
 
@@ -354,7 +358,8 @@ def test_save_validation(tmp_path, data):
     with pytest.raises(ModelStoreError, match="fitted on 4 features"):
         save_model(clf, tmp_path / "m.joblib", feature_names=FEATURES[:2], task="classification")
     with pytest.raises(ModelStoreError, match="duplicate"):
-        save_model(clf, tmp_path / "m.joblib", feature_names=["a", "a", "b", "c"], task="classification")
+        save_model(clf, tmp_path / "m.joblib", feature_names=["a", "a", "b", "c"],
+                   task="classification")
     with pytest.raises(ModelStoreError, match="task must be"):
         save_model(clf, tmp_path / "m.joblib", feature_names=FEATURES, task="ranking")
     with pytest.raises(ModelStoreError, match="no predict_proba"):

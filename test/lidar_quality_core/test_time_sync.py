@@ -1,6 +1,7 @@
 """Tests of lidar_quality_core.time_sync."""
 from __future__ import annotations
 
+import itertools
 import random
 import threading
 
@@ -165,6 +166,37 @@ def test_approximate_keeps_newer_messages_and_stays_monotone():
     assert sync.add(1, 105, "b105") == []
     assert sync.stats().late == [0, 1]
     assert_conserved(sync)
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    others=st.lists(st.lists(st.integers(0, 30), min_size=1, max_size=5), min_size=1, max_size=3),
+    pivot=st.integers(0, 30),
+    slop=st.integers(0, 10),
+)
+def test_approximate_choice_matches_brute_force(others, pivot, slop):
+    # Inputs 1.. are filled first (nothing can match while input 0 is empty); then the
+    # pivot on input 0 must pick the tightest set, ties -> oldest window -> earliest.
+    n = len(others) + 1
+    sync = StampSynchronizer(n, mode="approximate", slop_ns=slop, queue_size=10)
+    for j, stamps in enumerate(others, start=1):
+        for k, t in enumerate(stamps):
+            assert sync.add(j, t, (j, k)) == []
+    out = sync.add(0, pivot, (0, 0))
+    # Candidates per input sorted by (stamp, arrival).
+    queues = [sorted((t, k) for k, t in enumerate(stamps)) for stamps in others]
+    best = min(
+        itertools.product(*queues),
+        key=lambda c: (max(pivot, *(t for t, _ in c)) - min(pivot, *(t for t, _ in c)),
+                       min(pivot, *(t for t, _ in c)), c),
+    )
+    stamps = (pivot,) + tuple(t for t, _ in best)
+    if max(stamps) - min(stamps) > slop:
+        assert out == []
+    else:
+        (s,) = out
+        assert s.stamps == stamps
+        assert s.messages == ((0, 0),) + tuple((j, k) for j, (_, k) in enumerate(best, start=1))
 
 
 def test_approximate_zero_slop_equals_exact():
