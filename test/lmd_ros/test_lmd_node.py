@@ -86,3 +86,8 @@ def test_malformed_cloud_is_counted_not_fatal(ros):
 def test_executable_starts_and_stops_cleanly(ros, signame):
     run_executable_and_signal(ros, "lmd_ros", "lmd_node", ["input/points", "input/detections"],
                               signame)
+
+
+def test_launch_file():
+    from node_shell_checks import assert_launch_file
+    assert_launch_file("lmd_ros", "lmd_node")

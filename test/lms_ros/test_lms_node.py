@@ -43,3 +43,8 @@ def test_cloud_passes_through_and_bad_cloud_is_counted(ros):
 @pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
 def test_executable_starts_and_stops_cleanly(ros, signame):
     run_executable_and_signal(ros, "lms_ros", "lms_node", ["input/points"], signame)
+
+
+def test_launch_file():
+    from node_shell_checks import assert_launch_file
+    assert_launch_file("lms_ros", "lms_node")

@@ -50,3 +50,8 @@ def test_heads_are_matched_by_stamp(ros):
 def test_executable_starts_and_stops_cleanly(ros, signame):
     run_executable_and_signal(ros, "mimo_ros", "mimo_node", ["input/head_0", "input/head_1"],
                               signame)
+
+
+def test_launch_file():
+    from node_shell_checks import assert_launch_file
+    assert_launch_file("mimo_ros", "mimo_node")

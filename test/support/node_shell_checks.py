@@ -68,3 +68,19 @@ def run_executable_and_signal(ros, package, name, inputs, signame, timeout=20.0)
         raise AssertionError(f"{name} did not exit on {signame}")
     assert proc.returncode == 0, f"{name} exited with {proc.returncode} on {signame}:\n{out}"
     assert "Traceback" not in out, out
+
+
+def assert_launch_file(package: str, node_name: str) -> None:
+    """The installed launch file parses and starts ``node_name`` with its params file.
+
+    launch / launch_ros are not installable from PyPI here, so the file is checked
+    statically; on a Jazzy installation `ros2 launch` runs it.
+    """
+    import ast
+    short = node_name.removesuffix("_node")
+    path = WS_INSTALL / package / "share" / package / "launch" / f"{short}.launch.py"
+    tree = ast.parse(path.read_text(), filename=str(path))
+    funcs = {n.name for n in ast.walk(tree) if isinstance(n, ast.FunctionDef)}
+    assert "generate_launch_description" in funcs
+    consts = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)}
+    assert {package, node_name, f"{node_name}.yaml", "config"} <= consts, consts
