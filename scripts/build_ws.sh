@@ -1,6 +1,7 @@
 #!/usr/bin/env bash
 # colcon build of ros2_ws/. Our vision_msgs copy is built only when the environment has
 # none: with an installed vision_msgs it is marked COLCON_IGNORE so it never shadows it.
+# --which-vision-msgs only prints that decision (an install prefix, or "build").
 set -eo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
@@ -11,6 +12,10 @@ for p in "${prefixes[@]}"; do
   case "$p" in "$LQ_ROOT/ros2_ws/install"*) continue ;; esac
   if [ -e "$p/share/ament_index/resource_index/packages/vision_msgs" ]; then external="$p"; break; fi
 done
+if [ "${1:-}" = --which-vision-msgs ]; then
+  echo "${external:-build}"  # where vision_msgs would come from; changes nothing
+  exit 0
+fi
 if [ -n "$external" ]; then
   echo "build: using the installed vision_msgs in $external"
   touch "$ignore"
