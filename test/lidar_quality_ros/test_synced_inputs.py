@@ -5,6 +5,7 @@ from lidar_quality_ros.diagnostics import NodeDiagnostics
 from lidar_quality_ros.synced_inputs import SyncedInputs
 from rclpy.node import Node
 from geometry_msgs.msg import PointStamped
+from node_shell_checks import wait_until
 
 
 class _Pair(Node):
@@ -38,10 +39,7 @@ def test_approximate_pairs_and_counts(ros):
     pa.publish(_h(3, 0))
     time.sleep(0.05)
     pb.publish(_h(3, 0))
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and len(node.sets) < 2:
-        time.sleep(0.02)
-    time.sleep(0.1)
+    assert wait_until(lambda: len(node.sets) == 2 and node.inputs.unmatched_dropped() == 2)
     assert [tuple(m.header.frame_id for m in s.messages) for s in node.sets] == [
         ("1.0", "1.5000000"), ("3.0", "3.0")]
     # a@2.0 and b@2.05 were superseded by the frame-3 match: both counted as lost
@@ -69,9 +67,6 @@ def test_callback_exception_is_contained_and_counted(ros):
     for sec in (1, 2):
         pub.publish(_h(sec, 0))
         time.sleep(0.05)
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and node.calls < 2:
-        time.sleep(0.02)
+    assert wait_until(lambda: node.diag.dropped == 2)
     assert node.calls == 2  # the node survived the first exception
-    assert node.diag.dropped == 2
     assert "feature code bug" in node.diag.status().message

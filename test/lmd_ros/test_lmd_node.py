@@ -7,7 +7,7 @@ from lidar_quality_core.pointcloud import create_xyz_cloud
 from lmd_ros.lmd_node import LmdNode
 from node_shell_checks import (assert_declared_with_descriptions, assert_sensor_qos,
                                assert_yaml_matches_declared, diag_values,
-                               run_executable_and_signal)
+                               run_executable_and_signal, wait_until)
 from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
@@ -76,7 +76,7 @@ def test_malformed_cloud_is_counted_not_fatal(ros):
     assert out.wait_for(1, timeout=10.0)
     assert out.messages[0].header.stamp.sec == 8
     assert diag.wait_for(1, timeout=5.0)
-    assert node.diag.dropped == 1
+    assert wait_until(lambda: node.diag.dropped == 1)
     values = diag_values(node.diag.status())
     assert values["dropped.malformed_cloud"] == "1"
     assert "input/points" in node.diag.status().message

@@ -4,7 +4,8 @@ import pytest
 from lidar_quality_core.pointcloud import create_xyz_cloud
 from lms_ros.lms_node import LmsNode
 from node_shell_checks import (assert_declared_with_descriptions, assert_sensor_qos,
-                               assert_yaml_matches_declared, run_executable_and_signal)
+                               assert_yaml_matches_declared, run_executable_and_signal,
+                               wait_until)
 from sensor_msgs.msg import PointCloud2, PointField
 from std_msgs.msg import Header
 
@@ -37,7 +38,7 @@ def test_cloud_passes_through_and_bad_cloud_is_counted(ros):
     pub.publish(good)
     assert out.wait_for(1, timeout=10.0)
     assert out.messages[0] == good
-    assert node.diag.dropped == 1
+    assert wait_until(lambda: node.diag.dropped == 1)
 
 
 @pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])

@@ -1,13 +1,11 @@
 """mimo_node shell: parameters, K head inputs with sensor QoS, matching, clean shutdown."""
-import time
-
 import numpy as np
 import pytest
 from lidar_quality_core.boxes import arrays_to_detections
 from mimo_ros.mimo_node import MimoNode
 from node_shell_checks import (assert_declared_with_descriptions, assert_sensor_qos,
                                assert_yaml_matches_declared, diag_values,
-                               run_executable_and_signal)
+                               run_executable_and_signal, wait_until)
 from std_msgs.msg import Header
 from vision_msgs.msg import Detection3DArray
 
@@ -39,10 +37,7 @@ def test_heads_are_matched_by_stamp(ros):
             p.publish(arrays_to_detections(h, boxes, ["car"], [0.9]))
     h.stamp.sec = 3  # head 1 never sends frame 3
     pubs[0].publish(arrays_to_detections(h, boxes, ["car"], [0.9]))
-    deadline = time.monotonic() + 10
-    while time.monotonic() < deadline and node.diag.frames_out < 2:
-        time.sleep(0.05)
-    assert node.diag.frames_out == 2
+    assert wait_until(lambda: node.diag.frames_out == 2)
     assert diag_values(node.diag.status())["sync.matched"] == "2"
 
 

@@ -84,3 +84,13 @@ def assert_launch_file(package: str, node_name: str) -> None:
     assert "generate_launch_description" in funcs
     consts = {n.value for n in ast.walk(tree) if isinstance(n, ast.Constant)}
     assert {package, node_name, f"{node_name}.yaml", "config"} <= consts, consts
+
+
+def wait_until(predicate, timeout: float = 10.0) -> bool:
+    """Poll ``predicate`` until true (callbacks run on executor threads) or timeout."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.02)
+    return predicate()
