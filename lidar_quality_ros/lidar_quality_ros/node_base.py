@@ -30,7 +30,18 @@ class QualityNode(Node):
             queue_size=declare(self, "sync_queue_size", 10,
                                "Messages kept per input while waiting for their match; older "
                                "ones are dropped and counted in /diagnostics.", min_value=1),
+            processing_queue_size=declare(
+                self, "processing_queue_size", 2,
+                "Matched frames waiting for processing; when the node falls behind, the "
+                "oldest waiting frame is dropped (counted as overrun in /diagnostics).",
+                min_value=1),
         )
+
+    def destroy_node(self):
+        inputs = getattr(self, "inputs", None)
+        if inputs is not None:
+            inputs.close()
+        return super().destroy_node()
 
     def warn_input(self, key: str, message: str) -> None:
         """Throttled log warning plus a standing diagnostics warning for bad input."""

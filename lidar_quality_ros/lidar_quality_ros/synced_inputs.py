@@ -1,13 +1,17 @@
 """Stamp-synchronised subscriptions (our stand-in for message_filters).
 
-Each input gets a subscription in a reentrant callback group; arrivals go through
-``lidar_quality_core.time_sync.StampSynchronizer`` and the user callback runs on the
-matched set after the synchroniser released its lock, so a long frame never blocks the
-subscriptions of the next one.
+Each input gets a subscription; arrivals go through
+``lidar_quality_core.time_sync.StampSynchronizer``. Matched sets are handed to one
+worker thread that runs the user callback on them one at a time, in the order they were
+matched: subscriptions never wait for a long frame (no lock is held while the callback
+runs), outputs stay in input order, and a node that falls behind drops the oldest
+waiting frame (counted as ``overrun``) instead of building up latency.
 """
 from __future__ import annotations
 
+import threading
 import traceback
+from collections import deque
 from typing import Callable, Sequence
 
 from lidar_quality_core.time_sync import StampSynchronizer, SyncedSet, stamp_to_ns
@@ -16,12 +20,71 @@ from rclpy.callback_groups import ReentrantCallbackGroup
 from .qos import SENSOR_QOS
 
 
+class OrderedWorker:
+    """Runs ``fn(item)`` on a thread of its own, in submission order, keeping at most
+    ``max_pending`` items waiting; ``on_overrun(n)`` hears of the items it discarded."""
+
+    def __init__(self, fn: Callable, max_pending: int, on_overrun: Callable[[int], None],
+                 name: str = "lq_frame_worker"):
+        if max_pending < 1:
+            raise ValueError(f"max_pending must be >= 1, got {max_pending}")
+        self._fn, self._max, self._on_overrun = fn, max_pending, on_overrun
+        self._pending: deque = deque()
+        self._cond = threading.Condition()
+        self._stopping = False
+        self._busy = False
+        self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
+        self._thread.start()
+
+    def submit(self, item) -> None:
+        with self._cond:
+            if self._stopping:
+                return
+            discarded = 0
+            while len(self._pending) >= self._max:
+                self._pending.popleft()
+                discarded += 1
+            self._pending.append(item)
+            self._cond.notify()
+        if discarded:
+            self._on_overrun(discarded)
+
+    def idle(self) -> bool:
+        with self._cond:
+            return not self._pending and not self._busy
+
+    def _loop(self) -> None:
+        while True:
+            with self._cond:
+                self._cond.wait_for(lambda: self._pending or self._stopping)
+                if not self._pending:
+                    return
+                item = self._pending.popleft()
+                self._busy = True
+            try:
+                self._fn(item)
+            finally:
+                with self._cond:
+                    self._busy = False
+
+    def stop(self, timeout: float = 5.0) -> None:
+        """Finish the item being processed, discard the waiting ones, end the thread."""
+        with self._cond:
+            self._stopping = True
+            self._pending.clear()
+            self._cond.notify_all()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(timeout)
+
+
 class SyncedInputs:
-    """Subscribe to ``topics`` (list of ``(msg_type, topic)``) and call ``callback(set)``."""
+    """Subscribe to ``topics`` (list of ``(msg_type, topic)``) and call ``callback(set)``
+    for every matched set, on the worker thread, in matching order."""
 
     def __init__(self, node, topics: Sequence[tuple[type, str]],
                  callback: Callable[[SyncedSet], None], *, mode: str = "exact",
-                 slop_s: float = 0.0, queue_size: int = 10, qos=SENSOR_QOS, diagnostics=None):
+                 slop_s: float = 0.0, queue_size: int = 10, processing_queue_size: int = 2,
+                 qos=SENSOR_QOS, diagnostics=None):
         self.topics = [t for _, t in topics]
         self.sync = StampSynchronizer(len(topics), mode=mode,
                                       slop_ns=int(round(slop_s * 1e9)) if mode == "approximate" else 0,
@@ -29,6 +92,8 @@ class SyncedInputs:
         self._callback = callback
         self._diag = diagnostics
         self._logger = node.get_logger()
+        self.worker = OrderedWorker(self._run, processing_queue_size, self._overrun,
+                                    name=f"{node.get_name()}_frames")
         self._group = ReentrantCallbackGroup()
         self.subscriptions = [
             node.create_subscription(msg_type, topic, self._make_cb(i), qos,
@@ -46,8 +111,14 @@ class SyncedInputs:
                 self._diag.input_received(topic)
             stamp = msg.header.stamp
             for matched in self.sync.add(index, stamp_to_ns(stamp.sec, stamp.nanosec), msg):
-                self._run(matched)
+                self.worker.submit(matched)
         return on_message
+
+    def _overrun(self, n: int) -> None:
+        self._logger.warn(f"processing falls behind the input: dropped {n} waiting frame(s)",
+                          throttle_duration_sec=5.0)
+        if self._diag is not None:
+            self._diag.frame_dropped("overrun", n)
 
     def _run(self, matched: SyncedSet) -> None:
         # A bug or an unforeseen input must cost one frame, never the node.
@@ -73,3 +144,6 @@ class SyncedInputs:
         """Input messages lost by the synchroniser (late, overflow, unmatched, reset)."""
         s = self.sync.stats()
         return sum(s.dropped) + sum(s.late)
+
+    def close(self) -> None:
+        self.worker.stop()
