@@ -97,9 +97,10 @@ class RosHarness:
         env.update(ROS_DOMAIN_ID=str(self.domain_id), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
         return env
 
-    def spawn(self, argv: list[str], **kwargs) -> subprocess.Popen:
+    def spawn(self, argv: list[str], extra_env: dict[str, str] | None = None,
+              **kwargs) -> subprocess.Popen:
         """Start a process (e.g. a node executable) in this test's domain."""
-        proc = subprocess.Popen(argv, env=self.env(), **kwargs)
+        proc = subprocess.Popen(argv, env={**self.env(), **(extra_env or {})}, **kwargs)
         self._procs.append(proc)
         return proc
 
