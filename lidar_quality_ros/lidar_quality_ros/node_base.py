@@ -37,10 +37,14 @@ class QualityNode(Node):
                 min_value=1),
         )
 
-    def destroy_node(self):
+    def stop_processing(self) -> None:
+        """Finish the frame in progress and stop the frame worker (before any teardown)."""
         inputs = getattr(self, "inputs", None)
         if inputs is not None:
             inputs.close()
+
+    def destroy_node(self):
+        self.stop_processing()
         return super().destroy_node()
 
     def warn_input(self, key: str, message: str) -> None:

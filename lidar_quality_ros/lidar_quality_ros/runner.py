@@ -1,28 +1,33 @@
-"""``main()`` helper for the node executables: init, spin, clean exit on SIGINT / SIGTERM."""
+"""``main()`` helper for the node executables: init, spin, orderly exit on SIGINT / SIGTERM."""
 from __future__ import annotations
+
+import signal
+import threading
 
 import rclpy
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
 
 
 def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
-    """Create the node, spin it until shut down and return the process exit code.
+    """Create the node, spin it until SIGINT / SIGTERM and return the exit code.
 
-    rclpy's signal handlers turn SIGINT and SIGTERM into a context shutdown, which ends
-    ``spin`` with ``ExternalShutdownException``: both exit with code 0. A node that
-    cannot start (bad parameters, unreadable model) logs the reason and returns 2.
+    rclpy's own handlers would shut the context down at the signal, under a frame that
+    may still be publishing (a segfault in the middle layer, seen here). So we take the
+    signals ourselves and tear down in order: frame worker, executor, node, context.
+    A node that cannot start (bad parameters, unreadable model) logs why and returns 2.
     """
-    rclpy.init(args=args)
-    node = None
+    rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    node = executor = None
     code = 0
     try:
         node = node_factory()
         executor = MultiThreadedExecutor(num_threads=num_threads)
         executor.add_node(node)
-        try:
-            executor.spin()
-        finally:
-            executor.shutdown(timeout_sec=1.0)
+        while not stop.is_set() and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as exc:  # noqa: BLE001 - any start-up failure becomes exit code 2
@@ -32,9 +37,15 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
         code = 2
     finally:
         if node is not None:
-            # The node's own logger would also publish to /rosout, whose context may
-            # already be shut down by the signal.
             rclpy.logging.get_logger(node.get_name()).info("shutting down")
+            stop_processing = getattr(node, "stop_processing", None)
+            if stop_processing is not None:
+                stop_processing()
+        if executor is not None:
+            executor.shutdown(timeout_sec=2.0)
+        if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
     return code
