@@ -20,14 +20,18 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
-    node = executor = None
+    node = executor = spinner = None
     code = 0
     try:
         node = node_factory()
         executor = MultiThreadedExecutor(num_threads=num_threads)
         executor.add_node(node)
-        while not stop.is_set() and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
+        # spin() keeps its wait set between callbacks (spin_once rebuilds it: far too
+        # slow at sensor rates); it runs beside the main thread, which waits for a signal.
+        spinner = threading.Thread(target=_spin, args=(executor, stop), name="executor", daemon=True)
+        spinner.start()
+        while not stop.wait(0.5):
+            pass
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as exc:  # noqa: BLE001 - any start-up failure becomes exit code 2
@@ -43,9 +47,20 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
                 stop_processing()
         if executor is not None:
             executor.shutdown(timeout_sec=2.0)
+        if spinner is not None:
+            spinner.join(timeout=5.0)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
     return code
+
+
+def _spin(executor, stop: threading.Event) -> None:
+    try:
+        executor.spin()
+    except ExternalShutdownException:
+        pass
+    finally:
+        stop.set()  # spin ended (shutdown or an escaped error): let main tear down

@@ -68,18 +68,20 @@ class RosHarness:
         self._nodes = [self.node]
         self._procs: list[subprocess.Popen] = []
         self.errors: list[str] = []
+        self._closing = False
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
-        # Keep spinning after a callback raised, but remember it: close() fails the test.
-        while self.context.ok():
+        # spin() keeps its wait set (spin_once rebuilds it: too slow at sensor rates).
+        # After a callback raised, remember it (close() fails the test) and spin on.
+        while self.context.ok() and not self._closing:
             try:
-                self.executor.spin_once(timeout_sec=0.1)
+                self.executor.spin()
             except ExternalShutdownException:
                 break
             except Exception:  # noqa: BLE001
-                if self.context.ok():
+                if self.context.ok() and not self._closing:
                     self.errors.append(traceback.format_exc())
 
     # nodes under test -------------------------------------------------------------
@@ -129,6 +131,7 @@ class RosHarness:
         return False
 
     def close(self) -> None:
+        self._closing = True
         for proc in self._procs:
             if proc.poll() is None:
                 proc.terminate()
