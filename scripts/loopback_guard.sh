@@ -23,7 +23,7 @@ if [ "$leaked" -gt 0 ]; then
   tcpdump -nn -r "$cap/leak.pcap" 2>/dev/null | head -20 >&2
   [ "$code" -eq 0 ] && code=3
 else
-  echo "loopback_guard: 0 DDS/UDP packets outside loopback while the command ran"
+  echo "loopback_guard: 0 DDS/UDP packets outside loopback while the command ran" >&2
 fi
 rm -rf "$cap"
 exit "$code"

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from ament_index_python.packages import get_package_prefix
 from diagnostic_msgs.msg import DiagnosticArray
 from lidar_quality_core.boxes import arrays_to_detections
 from lidar_quality_core.pointcloud import create_xyz_cloud
@@ -34,20 +35,15 @@ NODES = {  # node -> (package, input topics, output topic, output type)
 }
 
 
-def _install_prefix(package: str) -> Path:
-    import ament_index_python
-    return Path(ament_index_python.get_package_prefix(package))
-
-
 def _start_node(ros: RosHarness, name: str, log_dir: Path) -> subprocess.Popen:
     package = NODES[name][0]
-    prefix = _install_prefix(package)
+    prefix = Path(get_package_prefix(package))
     exe = prefix / "lib" / package / f"{name}_node"
     params = prefix / "share" / package / "config" / f"{name}_node.yaml"
-    log = open(log_dir / f"{name}_node.log", "w")
-    ros_env = {"PYTHONFAULTHANDLER": "1"}  # a crash leaves its stack in the log
     argv = [str(exe), "--ros-args", "--params-file", str(params), "-r", f"__ns:=/{name}"]
-    return ros.spawn(argv, stdout=log, stderr=subprocess.STDOUT, extra_env=ros_env)
+    with open(log_dir / f"{name}_node.log", "w") as log:  # the child keeps its own copy
+        return ros.spawn(argv, stdout=log, stderr=subprocess.STDOUT,
+                         extra_env={"PYTHONFAULTHANDLER": "1"})  # a crash leaves its stack in the log
 
 
 def run(out_dir: Path, frames: int = 50, rate_hz: float = 10.0, n_points: int = 120_000) -> dict:
