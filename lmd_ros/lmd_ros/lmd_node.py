@@ -45,6 +45,7 @@ class LmdNode(QualityNode):
             self.warn_input("cloud", f"dropping frame: malformed input/points: {exc}")
             self.diag.frame_dropped("malformed_cloud")
             return
+        self.diag.clear("cloud")
         arrays = detections_to_arrays(detections)
         if not arrays.valid.all():
             bad = [f"#{i}: {r}" for i, r in enumerate(arrays.reasons) if r]

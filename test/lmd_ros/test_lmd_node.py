@@ -1,7 +1,7 @@
 """lmd_node shell: parameters, sensor QoS inputs, pass-through, bad input, clean shutdown."""
 import numpy as np
 import pytest
-from diagnostic_msgs.msg import DiagnosticArray
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from lidar_quality_core.boxes import arrays_to_detections
 from lidar_quality_core.pointcloud import create_xyz_cloud
 from lmd_ros.lmd_node import LmdNode
@@ -70,16 +70,18 @@ def test_malformed_cloud_is_counted_not_fatal(ros):
     cloud.data = cloud.data[:100]  # truncated buffer
     pc.publish(cloud)
     dp.publish(dets)
+    assert wait_until(lambda: node.diag.dropped == 1)
+    status = node.diag.status()
+    assert status.level == DiagnosticStatus.WARN and "input/points" in status.message
+    assert diag_values(status)["dropped.malformed_cloud"] == "1"
+    assert diag.wait_for(1, timeout=5.0)
     good_cloud, good_dets = _frame(8)
     pc.publish(good_cloud)
     dp.publish(good_dets)
     assert out.wait_for(1, timeout=10.0)
-    assert out.messages[0].header.stamp.sec == 8
-    assert diag.wait_for(1, timeout=5.0)
-    assert wait_until(lambda: node.diag.dropped == 1)
-    values = diag_values(node.diag.status())
-    assert values["dropped.malformed_cloud"] == "1"
-    assert "input/points" in node.diag.status().message
+    assert out.messages[0].header.stamp.sec == 8  # the bad frame produced no output
+    assert node.diag.dropped == 1
+    assert node.diag.status().level == DiagnosticStatus.OK  # the good frame cleared it
 
 
 @pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
