@@ -15,7 +15,8 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
     rclpy's own handlers would shut the context down at the signal, under a frame that
     may still be publishing (a segfault in the middle layer, seen here). So we take the
     signals ourselves and tear down in order: frame worker, executor, node, context.
-    A node that cannot start (bad parameters, unreadable model) logs why and returns 2.
+    A node that cannot start (bad parameters, unreadable model) logs why and returns 2;
+    an error that escapes the executor (not a frame: those are contained) returns 1.
     """
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
@@ -28,10 +29,16 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
         executor.add_node(node)
         # spin() keeps its wait set between callbacks (spin_once rebuilds it: far too
         # slow at sensor rates); it runs beside the main thread, which waits for a signal.
-        spinner = threading.Thread(target=_spin, args=(executor, stop), name="executor", daemon=True)
+        crashed: list[BaseException] = []
+        spinner = threading.Thread(target=_spin, args=(executor, stop, crashed), name="executor",
+                                   daemon=True)
         spinner.start()
         while not stop.wait(0.5):
             pass
+        if crashed:
+            rclpy.logging.get_logger(node.get_name()).fatal(
+                f"executor stopped by an error: {type(crashed[0]).__name__}: {crashed[0]}")
+            code = 1
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except Exception as exc:  # noqa: BLE001 - any start-up failure becomes exit code 2
@@ -57,10 +64,13 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
     return code
 
 
-def _spin(executor, stop: threading.Event) -> None:
+def _spin(executor, stop: threading.Event, crashed: list) -> None:
     try:
         executor.spin()
     except ExternalShutdownException:
         pass
+    except BaseException as exc:  # noqa: BLE001 - reported by run_node as exit code 1
+        crashed.append(exc)
+        raise
     finally:
         stop.set()  # spin ended (shutdown or an escaped error): let main tear down

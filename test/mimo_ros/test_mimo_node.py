@@ -50,3 +50,14 @@ def test_executable_starts_and_stops_cleanly(ros, signame):
 def test_launch_file():
     from node_shell_checks import assert_launch_file
     assert_launch_file("mimo_ros", "mimo_node")
+
+
+def test_bad_parameter_exits_with_code_2(ros):
+    import subprocess
+
+    from node_shell_checks import executable
+    proc = ros.spawn([str(executable("mimo_ros", "mimo_node")), "--ros-args", "-p", "num_heads:=0"],
+                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 2, out
+    assert "node failed to start" in out and "num_heads" in out
