@@ -10,6 +10,7 @@ import array
 import functools
 import sys
 from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 
@@ -23,6 +24,8 @@ __all__ = [
     "read_fields",
     "xyz_intensity",
     "finite_mask",
+    "PackedCloud",
+    "pack_cloud",
     "create_cloud",
     "create_xyz_cloud",
 ]
@@ -338,17 +341,22 @@ def _columns_of(fields) -> tuple[list, tuple[int, int]]:
     return cols, (1, n or 0)
 
 
-def create_cloud(header, fields):
-    """Build a sensor_msgs/PointCloud2 from a structured array or a dict of columns.
+class PackedCloud(NamedTuple):
+    """Message-independent PointCloud2 content: ``fields`` as (name, offset, datatype,
+    count) tuples and the packed ``data`` bytes (an ``array.array('B')``)."""
 
-    ``fields``: structured array of shape (N,) or (H, W) (sub-array fields -> count), or
-    a dict ``name -> (N,)`` / ``(N, count)`` array. Fields are packed in order without
-    padding. ``is_bigendian`` follows the arrays (all multi-byte fields big-endian ->
-    big-endian message, mixed -> native). ``is_dense`` is False iff x, y or z holds a
-    non-finite value. ``header=None`` uses a default Header.
-    """
-    from sensor_msgs.msg import PointCloud2, PointField
+    fields: list
+    height: int
+    width: int
+    point_step: int
+    is_bigendian: bool
+    is_dense: bool
+    data: array.array
 
+
+def pack_cloud(fields) -> PackedCloud:
+    """Pack a structured array or a dict of columns into PointCloud2 layout (see
+    :func:`create_cloud`); used directly by writers of other message libraries (rosbags)."""
     cols, (height, width) = _columns_of(fields)
     orders = {_is_big(base) for _, _, base, _ in cols} - {None}
     big = orders.pop() if len(orders) == 1 else _NATIVE_BIG
@@ -361,7 +369,7 @@ def create_cloud(header, fields):
         names.append(name)
         formats.append(wire if count == 1 else np.dtype((wire, (count,))))
         offsets.append(offset)
-        pfields.append(PointField(name=name, offset=offset, datatype=code, count=count))
+        pfields.append((name, offset, code, count))
         offset += wire.itemsize * count
     point_step = offset
     n = height * width
@@ -387,14 +395,30 @@ def create_cloud(header, fields):
         if name in ("x", "y", "z") and base.kind == "f" and not np.isfinite(col).all():
             is_dense = False
             break
+    return PackedCloud(pfields, height, width, point_step, bool(big), is_dense, buf)
 
+
+def create_cloud(header, fields):
+    """Build a sensor_msgs/PointCloud2 from a structured array or a dict of columns.
+
+    ``fields``: structured array of shape (N,) or (H, W) (sub-array fields -> count), or
+    a dict ``name -> (N,)`` / ``(N, count)`` array. Fields are packed in order without
+    padding. ``is_bigendian`` follows the arrays (all multi-byte fields big-endian ->
+    big-endian message, mixed -> native). ``is_dense`` is False iff x, y or z holds a
+    non-finite value. ``header=None`` uses a default Header.
+    """
+    from sensor_msgs.msg import PointCloud2, PointField
+
+    packed = pack_cloud(fields)
     if header is None:
         from std_msgs.msg import Header
         header = Header()
-    msg = PointCloud2(header=header, height=height, width=width, fields=pfields,
-                      is_bigendian=bool(big), point_step=point_step,
-                      row_step=point_step * width, is_dense=is_dense)
-    _set_data(msg, buf)
+    msg = PointCloud2(header=header, height=packed.height, width=packed.width,
+                      fields=[PointField(name=n, offset=o, datatype=d, count=c)
+                              for n, o, d, c in packed.fields],
+                      is_bigendian=packed.is_bigendian, point_step=packed.point_step,
+                      row_step=packed.point_step * packed.width, is_dense=packed.is_dense)
+    _set_data(msg, packed.data)
     return msg
 
 
