@@ -1,0 +1,4 @@
+"""python -m lidar_sim ..."""
+from .cli import main
+
+raise SystemExit(main())
