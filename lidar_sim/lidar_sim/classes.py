@@ -180,9 +180,9 @@ def semantickitti_class_map(path: str | Path | None = None) -> dict:
     """A semantic-kitti.yaml style class map for our classes (optionally written as yaml).
 
     Keys: ``labels`` (raw id -> name, the full SemanticKITTI set), ``color_map`` (raw id
-    -> [b, g, r], BGR as SemanticKITTI), ``learning_map`` (raw id -> our id), ``learning_map_inv`` (our id ->
-    raw id), ``learning_ignore`` (our id -> bool, unlabeled ignored), ``class_names``
-    (our id -> our name), ``things`` (our thing ids).
+    -> [b, g, r], BGR as SemanticKITTI), ``learning_map`` (raw id -> our id),
+    ``learning_map_inv`` (our id -> raw id), ``learning_ignore`` (our id -> bool,
+    unlabeled ignored), ``class_names`` (our id -> our name), ``things`` (thing ids).
     """
     cmap = {
         "name": "lidar_sim",

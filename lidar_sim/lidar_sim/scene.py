@@ -281,7 +281,7 @@ def _sample_size(cls: int, rng, van: bool = False, walking: bool = True):
     raise ValueError(cls)
 
 
-def _wheels(xs, w, r, tw, rng):
+def _wheels(xs, w, r, tw):
     ys = (w / 2 - 0.02 - tw / 2, -(w / 2 - 0.02 - tw / 2))
     return [_ext(x - r, x + r, y - tw / 2, y + tw / 2, 0.0, 2 * r) for x in xs for y in ys]
 
@@ -297,7 +297,7 @@ def _car_parts(l, w, h, rng):
     parts.append(_ext(xc - lc / 2, xc + lc / 2, -wc / 2, wc / 2, hb, h))
     refl.append(C.sample_reflectivity(rng, material="glass"))
     xs = (l / 2 - rng.uniform(0.75, 0.95), -l / 2 + rng.uniform(0.6, 0.85))
-    tyres = _wheels(xs, w, rw, 0.2, rng)
+    tyres = _wheels(xs, w, rw, 0.2)
     parts += tyres
     refl += [C.sample_reflectivity(rng, material="tyre")] * len(tyres)
     zp = clear + 0.35 * (hb - clear)
@@ -320,7 +320,7 @@ def _truck_parts(l, w, h, rng):
                  _ext(-l / 2 + 0.03, l / 2 - hood, -w / 2 + 0.03, w / 2 - 0.03, hb, h)]
         refl = [paint, paint]
         xs = (l / 2 - rng.uniform(0.8, 1.0), -l / 2 + rng.uniform(0.8, 1.1))
-        tyres = _wheels(xs, w, rw, 0.22, rng)
+        tyres = _wheels(xs, w, rw, 0.22)
         for sx in (1, -1):
             zp = clear + 0.3 * (hb - clear)
             x0, x1 = sorted((sx * l / 2, sx * (l / 2 - 0.03)))
@@ -335,11 +335,11 @@ def _truck_parts(l, w, h, rng):
         parts = [_ext(-l / 2 + 0.1, l / 2 - 0.1, -0.4 * w, 0.4 * w, 0.5, 1.0),
                  _ext(l / 2 - lcab, l / 2, -w / 2 + 0.04, w / 2 - 0.04, 0.45, hcab),
                  _ext(-l / 2, l / 2 - lcab - gap, -w / 2, w / 2, cargo_z0, h)]
-        refl = [C.sample_reflectivity(rng, material="tyre") * 2, paint,
+        refl = [C.sample_reflectivity(rng, material="tyre") * 2, paint,  # dark underbody
                 C.sample_reflectivity(rng, C.TRUCK)]
         rear = -l / 2 + rng.uniform(1.2, 1.8)
         xs = [l / 2 - rng.uniform(1.0, 1.3), rear] + ([rear + 2 * rw + 0.3] if l > 8 else [])
-        tyres = _wheels(xs, w, rw, 0.3, rng)
+        tyres = _wheels(xs, w, rw, 0.3)
     parts += tyres
     refl += [tyre] * len(tyres)
     return parts, refl
@@ -737,6 +737,8 @@ def _scenery(cfg: SceneConfig, st: _Stuff, rng) -> list[tuple[float, float, floa
             z_top = hp
             for _k in range(1 + int(rng.random() < 0.3)):
                 sw_, sh = rng.uniform(0.5, 0.8), rng.uniform(0.5, 0.8)
+                if z_top - sh < 1.2:  # keep signs above head-ish height
+                    break
                 st.box([xsign, ys, z_top - sh / 2, 0.04, sw_, sh, 0.0], C.TRAFFIC_SIGN,
                        C.sample_reflectivity(rng, C.TRAFFIC_SIGN))
                 obstacles.append((xsign, ys, 0.5 * np.hypot(0.04, sw_)))
@@ -788,7 +790,8 @@ def _positions(boxes, vel, wraps, birth, death, L, times):
     raw = boxes[None, :, 0] + vel[None, :, 0] * times[:, None]
     x = np.where(wraps[None], raw % L, raw)
     y = boxes[None, :, 1] + vel[None, :, 1] * times[:, None]
-    alive = (birth[None] <= times[:, None] + _TIME_EPS) & (times[:, None] - _TIME_EPS <= death[None])
+    tt = times[:, None]
+    alive = (birth[None] <= tt + _TIME_EPS) & (tt - _TIME_EPS <= death[None])
     return x, y, alive
 
 

@@ -50,3 +50,17 @@ def test_deterministic(tmp_path):
     for rel in ("kitti/training/velodyne/000000.bin", "kitti/training/label_2/000000.txt",
                 "semantickitti/sequences/00/labels/000000.label"):
         assert (tmp_path / "a" / rel).read_bytes() == (tmp_path / "b" / rel).read_bytes(), rel
+
+
+def test_annotated_labels_differ_only_by_listed_errors(tmp_path):
+    out = tmp_path / "sim"
+    main(["generate", "--sequences", "1", "--frames", "2", "--seed", "9", "--out", str(out),
+          "--annotation-errors", "--quiet"])
+    errors = [json.loads(l) for l in (out / "annotated" / "errors.jsonl").read_text().splitlines()]
+    touched_types = {(e["kitti_frame_id"]) for e in errors if e["kind"] == "wrong_class"}
+    for label in sorted((out / "kitti" / "training" / "label_2").glob("*.txt")):
+        clean = [l.split()[0] for l in label.read_text().splitlines()]
+        annotated = out / "annotated" / "kitti" / "training" / "label_2" / label.name
+        ann = [l.split()[0] for l in annotated.read_text().splitlines()]
+        if label.stem not in touched_types and len(clean) == len(ann):
+            assert clean == ann  # e.g. a Van stays a Van when no error touched it
