@@ -39,8 +39,6 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
             rclpy.logging.get_logger(node.get_name()).fatal(
                 f"executor stopped by an error: {type(crashed[0]).__name__}: {crashed[0]}")
             code = 1
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
     except Exception as exc:  # noqa: BLE001 - any start-up failure becomes exit code 2
         if node is not None:
             raise

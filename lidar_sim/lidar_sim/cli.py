@@ -103,7 +103,8 @@ def generate(out: Path, *, sequences: int, frames: int, seed: int, sensor: str =
                         a_boxes, a_cls, a_inst, a_lab = apply_records(
                             recs, f.gt_boxes[visible], f.gt_class[visible], f.gt_instance[visible],
                             f.xyz, f.semantic)
-                        row = [{int(k): j for j, k in enumerate(f.gt_instance)}[int(k)] for k in a_inst]
+                        row_of = {int(k): j for j, k in enumerate(f.gt_instance)}
+                        row = [row_of[int(k)] for k in a_inst]
                         # keep the object's own KITTI type (Van vs Truck) unless its class changed
                         types = [f.gt_kitti_type[j] if c == f.gt_class[j] else classes.kitti_type(c)
                                  for j, c in zip(row, a_cls)]

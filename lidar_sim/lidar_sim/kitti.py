@@ -85,9 +85,12 @@ def _wrap(a: float) -> float:
     return float((a + np.pi) % (2 * np.pi) - np.pi)
 
 
-def calib_text() -> str:
-    rows = [("P0", P0), ("P1", P1), ("P2", P2), ("P3", P3), ("R0_rect", R0_RECT),
-            ("Tr_velo_to_cam", TR_VELO_TO_CAM), ("Tr_imu_to_velo", TR_IMU_TO_VELO)]
+OBJECT_CALIB = (("P0", P0), ("P1", P1), ("P2", P2), ("P3", P3), ("R0_rect", R0_RECT),
+                ("Tr_velo_to_cam", TR_VELO_TO_CAM), ("Tr_imu_to_velo", TR_IMU_TO_VELO))
+
+
+def calib_text(rows=OBJECT_CALIB) -> str:
+    """KITTI calibration file text: one ``key: row-major values`` line per matrix."""
     return "".join(f"{k}: {' '.join(f'{v:.12e}' for v in m.reshape(-1))}\n" for k, m in rows)
 
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .kitti import P0, P1, P2, P3, TR_VELO_TO_CAM, write_velodyne
+from .kitti import P0, P1, P2, P3, TR_VELO_TO_CAM, calib_text, write_velodyne
 
 
 def encode_labels(semantic_kitti_id: np.ndarray, instance: np.ndarray) -> np.ndarray:
@@ -61,9 +61,8 @@ def write_sequence_meta(root: Path, sequence: int, world_from_lidar: np.ndarray,
     cam = tr @ first_inv @ poses @ np.linalg.inv(tr)  # KITTI odometry: camera-0 frames
     (seq / "poses.txt").write_text(
         "".join(" ".join(f"{v:.9e}" for v in p[:3].reshape(-1)) + "\n" for p in cam))
-    rows = [("P0", P0), ("P1", P1), ("P2", P2), ("P3", P3), ("Tr", TR_VELO_TO_CAM)]
     (seq / "calib.txt").write_text(
-        "".join(f"{k}: {' '.join(f'{v:.12e}' for v in m.reshape(-1))}\n" for k, m in rows))
+        calib_text((("P0", P0), ("P1", P1), ("P2", P2), ("P3", P3), ("Tr", TR_VELO_TO_CAM))))
     (seq / "times.txt").write_text("".join(f"{t:.6e}\n" for t in np.asarray(stamps_s)))
 
 

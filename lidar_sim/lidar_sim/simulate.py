@@ -106,8 +106,7 @@ def simulate_frame(fp: FramePrimitives, cfg: SensorConfig, rng, *, sequence: int
             if k in inst_row:
                 counts[inst_row[k]] = c
     expected = unoccluded_beams(fp.primitives, cfg, fp.gt_boxes, fp.gt_instance)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        occl = np.where(expected > 0, 1.0 - counts / np.maximum(expected, 1), 1.0)
+    occl = np.where(expected > 0, 1.0 - counts / np.maximum(expected, 1), 1.0)
     return SimFrame(sequence=sequence, index=fp.index, stamp_ns=fp.stamp_ns, ego_pose=fp.ego_pose,
                     xyz=s.xyz, intensity=s.intensity, ring=s.ring, semantic=s.semantic,
                     instance=s.instance, gt_boxes=fp.gt_boxes, gt_class=fp.gt_class,
