@@ -13,8 +13,12 @@ save time; ``null`` if absent), ``training_data`` (free dict), ``metrics`` (dict
 probability is the confidence), and for native XGBoost ``xgboost``:
 ``{"estimator": "XGBClassifier" | "XGBRegressor" | "Booster", "objective": ...}``.
 
-Classification is binary only: the confidence is P(positive class). Native XGBoost
-classifiers must use ``binary:logistic`` (the probability is the model output).
+Task ``classification`` is binary: the confidence is P(positive class). Native XGBoost
+classifiers must use ``binary:logistic`` (the probability is the model output). Task
+``multiclass`` (e.g. the reference perception's class distributions) stores ``classes``
+(the labels, in probability-column order) and optionally ``class_names``; native XGBoost
+must use ``multi:softprob``. A ``regression`` model with several outputs names them in
+``target_names`` and predicts an ``(n, T)`` array.
 
 Loading checks, in this order and before anything is deserialised: manifest present and
 well formed, model file present and named as in the manifest, format known, SHA-256
@@ -66,7 +70,7 @@ __all__ = [
 MANIFEST_SUFFIX = ".manifest.json"
 MANIFEST_VERSION = 1
 FORMATS = ("joblib", "xgboost-json", "xgboost-ubj")
-TASKS = ("classification", "regression")
+TASKS = ("classification", "regression", "multiclass")
 _NATIVE_EXT = {"xgboost-json": ".json", "xgboost-ubj": ".ubj"}
 _XGB_ESTIMATORS = ("XGBClassifier", "XGBRegressor", "Booster")
 _LIBS = {  # manifest key -> candidate distribution names
@@ -216,12 +220,16 @@ def save_model(
     metrics: Mapping[str, Any] | None = None,
     model_id: str | None = None,
     format: str | None = None,
+    class_names: Sequence[str] | None = None,
+    target_names: Sequence[str] | None = None,
 ) -> dict[str, Any]:
     """Write ``model`` to ``path`` and its manifest beside it; returns the manifest.
 
     ``format`` defaults to ``xgboost-json`` / ``xgboost-ubj`` for XGBoost models saved
     to ``*.json`` / ``*.ubj`` and to ``joblib`` otherwise. ``model_id`` defaults to
-    ``<file stem>-<first 12 hex of sha256>``.
+    ``<file stem>-<first 12 hex of sha256>``. ``class_names`` (multiclass) label the
+    probability columns; ``target_names`` (regression) name the outputs of a multi-output
+    regressor.
     """
     path = Path(path)
     if task not in TASKS:
@@ -247,6 +255,8 @@ def save_model(
 
         if task == "classification":
             manifest["positive_class"] = _positive_class(model, path)
+        elif task == "multiclass":
+            manifest["classes"] = _multiclass_labels(model, path)
         elif not hasattr(model, "predict"):
             raise ModelStoreError(f"{path.name}: regression model has no predict()")
         writer = lambda tmp: joblib.dump(model, tmp)  # noqa: E731
@@ -262,8 +272,20 @@ def save_model(
         manifest["xgboost"] = _xgb_info(model, task, names, path)
         if task == "classification":
             manifest["positive_class"] = 1
+        elif task == "multiclass":
+            manifest["classes"] = list(range(manifest["xgboost"]["num_class"]))
         writer = model.save_model
         suffix = ext  # xgboost picks the format from the extension
+
+    if class_names is not None:
+        if task != "multiclass" or len(class_names) != len(manifest["classes"]):
+            raise ModelStoreError(f"{path.name}: class_names need a multiclass model with "
+                                  f"{len(manifest.get('classes', []))} classes")
+        manifest["class_names"] = [str(c) for c in class_names]
+    if target_names is not None:
+        if task != "regression":
+            raise ModelStoreError(f"{path.name}: target_names need a regression model")
+        manifest["target_names"] = [str(t) for t in target_names]
 
     digest = _write_atomic(path, writer, suffix)
     manifest.update(
@@ -301,6 +323,15 @@ def _positive_class(model: Any, path: Path) -> Any:
     return _json_default(classes[1]) if isinstance(classes[1], np.generic) else classes[1]
 
 
+def _multiclass_labels(model: Any, path: Path) -> list:
+    if not hasattr(model, "predict_proba"):
+        raise ModelStoreError(f"{path.name}: multiclass model has no predict_proba()")
+    classes = getattr(model, "classes_", None)
+    if classes is None or len(classes) < 2:
+        raise ModelStoreError(f"{path.name}: multiclass model needs classes_ (got {classes!r})")
+    return [_json_default(c) if isinstance(c, np.generic) else c for c in classes]
+
+
 def _xgb_info(model: Any, task: str, names: list[str], path: Path) -> dict[str, Any]:
     import xgboost
 
@@ -322,6 +353,12 @@ def _xgb_info(model: Any, task: str, names: list[str], path: Path) -> dict[str, 
                 f"{path.name}: native xgboost classifiers must use objective "
                 f"binary:logistic (got {objective!r})"
             )
+    elif task == "multiclass":
+        if estimator == "XGBRegressor":
+            raise ModelStoreError(f"{path.name}: XGBRegressor saved with task multiclass")
+        if objective != "multi:softprob":
+            raise ModelStoreError(f"{path.name}: native xgboost multiclass models must use "
+                                  f"objective multi:softprob (got {objective!r})")
     elif estimator == "XGBClassifier":
         raise ModelStoreError(f"{path.name}: XGBClassifier saved with task regression")
     if booster.num_features() != len(names):
@@ -334,7 +371,15 @@ def _xgb_info(model: Any, task: str, names: list[str], path: Path) -> dict[str, 
             f"{path.name}: booster feature names differ from feature_names: "
             f"{_schema_diff(names, booster.feature_names)}"
         )
-    return {"estimator": estimator, "objective": objective}
+    info = {"estimator": estimator, "objective": objective}
+    if task == "multiclass":
+        info["num_class"] = _xgb_num_class(booster)
+    return info
+
+
+def _xgb_num_class(booster: Any) -> int:
+    cfg = json.loads(booster.save_config())
+    return int(cfg["learner"]["learner_model_param"]["num_class"])
 
 
 # -- loading ---------------------------------------------------------------------------
@@ -446,7 +491,12 @@ def _check_loaded_joblib(path: Path, est: Any, manifest: Mapping[str, Any]) -> N
     n_in = getattr(est, "n_features_in_", None)
     if n_in is not None and int(n_in) != n:
         raise ModelStoreError(f"{path}: model expects {n_in} features, manifest lists {n}")
-    if manifest["task"] == "classification":
+    if manifest["task"] == "multiclass":
+        classes = manifest.get("classes")
+        got = _multiclass_labels(est, path) if hasattr(est, "predict_proba") else None
+        if got is None or got != classes:
+            raise ModelStoreError(f"{path}: classes_ {got} differ from the manifest's {classes}")
+    elif manifest["task"] == "classification":
         if not hasattr(est, "predict_proba"):
             raise ModelStoreError(f"{path}: classification model has no predict_proba()")
         classes = list(getattr(est, "classes_", []))
@@ -469,6 +519,7 @@ def _load_xgb_native(path: Path, data: bytes, manifest: Mapping[str, Any]) -> An
         )
     kind = info["estimator"]
     expected = {"classification": ("XGBClassifier", "Booster"),
+                "multiclass": ("XGBClassifier", "Booster"),
                 "regression": ("XGBRegressor", "Booster")}[manifest["task"]]
     if kind not in expected:
         raise ModelStoreError(f"{path}: {kind} cannot serve task {manifest['task']!r}")
@@ -486,6 +537,12 @@ def _load_xgb_native(path: Path, data: bytes, manifest: Mapping[str, Any]) -> An
         )
     if manifest["task"] == "classification" and objective != "binary:logistic":
         raise ModelStoreError(f"{path}: classification needs binary:logistic, got {objective!r}")
+    if manifest["task"] == "multiclass":
+        if objective != "multi:softprob":
+            raise ModelStoreError(f"{path}: multiclass needs multi:softprob, got {objective!r}")
+        if _xgb_num_class(booster) != len(manifest.get("classes") or []):
+            raise ModelStoreError(f"{path}: booster has {_xgb_num_class(booster)} classes, "
+                                  f"manifest lists {manifest.get('classes')}")
     n = len(manifest["feature_names"])
     if booster.num_features() != n:
         raise ModelStoreError(
@@ -498,7 +555,9 @@ class LoadedModel:
     """A verified model with a uniform prediction interface.
 
     Attributes: ``path``, ``manifest`` (a copy), ``model_id``, ``feature_names`` (tuple),
-    ``n_features``, ``task``, ``format``, ``sha256``, ``estimator`` (the raw model).
+    ``n_features``, ``task``, ``format``, ``sha256``, ``estimator`` (the raw model),
+    ``classes`` / ``class_names`` (multiclass), ``target_names`` (regression; None for a
+    single output).
     Prediction is thread-safe as far as the underlying library's predict is.
     """
 
@@ -513,6 +572,10 @@ class LoadedModel:
         self.sha256: str = manifest["sha256"]
         self.estimator = estimator
         self._kind = (manifest.get("xgboost") or {}).get("estimator")
+        self.classes = tuple(manifest.get("classes") or ())
+        self.class_names = tuple(manifest.get("class_names") or map(str, self.classes))
+        tn = manifest.get("target_names")
+        self.target_names = tuple(tn) if tn else None
 
     def __repr__(self) -> str:
         return (f"LoadedModel({self.path.name!r}, id={self.model_id!r}, task={self.task}, "
@@ -542,6 +605,8 @@ class LoadedModel:
             return self.estimator.predict(dm)
         if self.task == "classification":
             return self.estimator.predict_proba(X)[:, 1]
+        if self.task == "multiclass":
+            return self.estimator.predict_proba(X)
         return self.estimator.predict(X)
 
     def predict_confidence(self, X: Any) -> np.ndarray:
@@ -558,12 +623,25 @@ class LoadedModel:
         if self.task != "regression":
             raise ModelStoreError(f"{self.path.name}: predict_value on a {self.task} model")
         X = self._check_X(X)
+        n_out = len(self.target_names) if self.target_names else 1
         if X.shape[0] == 0:
-            return np.empty(0, dtype=np.float64)
-        return np.asarray(self._raw(X), dtype=np.float64).reshape(-1)
+            return np.empty((0, n_out) if self.target_names else 0, dtype=np.float64)
+        out = np.asarray(self._raw(X), dtype=np.float64)
+        return out.reshape(len(X), n_out) if self.target_names else out.reshape(-1)
+
+    def predict_proba(self, X: Any) -> np.ndarray:
+        """Class probabilities, shape ``(n, len(classes))``; multiclass only."""
+        if self.task != "multiclass":
+            raise ModelStoreError(f"{self.path.name}: predict_proba on a {self.task} model")
+        X = self._check_X(X)
+        if X.shape[0] == 0:
+            return np.empty((0, len(self.classes)), dtype=np.float64)
+        return np.asarray(self._raw(X), dtype=np.float64).reshape(len(X), len(self.classes))
 
     def predict(self, X: Any) -> np.ndarray:
-        """``predict_confidence`` or ``predict_value`` according to ``task``."""
+        """``predict_confidence``, ``predict_proba`` or ``predict_value`` by ``task``."""
+        if self.task == "multiclass":
+            return self.predict_proba(X)
         if self.task == "classification":
             return self.predict_confidence(X)
         return self.predict_value(X)

@@ -408,3 +408,83 @@ def test_model_file_is_world_readable(saved_clf):
     path, _ = saved_clf
     assert path.stat().st_mode & 0o044 == 0o044
     assert Path(manifest_path_for(path)).stat().st_mode & 0o044 == 0o044
+
+
+# -- multiclass and multi-output ------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def data3(data):
+    X, _, _, X_test = data
+    y3 = np.digitize(X[:, 0] + 0.3 * X[:, 1], [-0.5, 0.5])  # 3 classes
+    return X, y3, X_test
+
+
+@pytest.mark.parametrize("kind", ["sklearn", "xgb-joblib", "xgb-json", "xgb-ubj", "booster"])
+def test_multiclass_roundtrip(tmp_path, data3, kind, monkeypatch):
+    X, y3, X_test = data3
+    names = ["bg", "car", "ped"]
+    if kind == "sklearn":
+        model, path = LogisticRegression(max_iter=500).fit(X, y3), tmp_path / "m.joblib"
+        expected = model.predict_proba(X_test)
+    elif kind == "booster":
+        model = xgb.train({"objective": "multi:softprob", "num_class": 3, "max_depth": 2},
+                          xgb.DMatrix(X, label=y3), num_boost_round=5)
+        path, expected = tmp_path / "m.ubj", model.predict(xgb.DMatrix(X_test))
+    else:
+        model = xgb.XGBClassifier(n_estimators=8, max_depth=2).fit(X, y3)
+        path = tmp_path / ("m.joblib" if kind == "xgb-joblib" else f"m.{kind[4:]}")
+        expected = model.predict_proba(X_test)
+    m = save_model(model, path, feature_names=FEATURES, task="multiclass", class_names=names)
+    assert m["classes"] == [0, 1, 2] and m["class_names"] == names
+    lm = load_model(path, expected_task="multiclass")
+    p = lm.predict(X_test)
+    assert p.shape == (30, 3) and lm.class_names == tuple(names) and lm.classes == (0, 1, 2)
+    np.testing.assert_allclose(p, expected, atol=1e-6)
+    np.testing.assert_allclose(p.sum(axis=1), 1.0, atol=1e-5)
+    assert lm.predict_proba(np.empty((0, 4))).shape == (0, 3)
+    with pytest.raises(ModelStoreError, match="predict_confidence on a multiclass"):
+        lm.predict_confidence(X_test)
+
+
+def test_multiclass_refusals(tmp_path, data3, data):
+    X, y3, _ = data3
+    _, y2, y_reg, _ = data
+    with pytest.raises(ModelStoreError, match="multi:softprob"):
+        save_model(xgb.XGBClassifier(n_estimators=2).fit(X, y2), tmp_path / "a.json",
+                   feature_names=FEATURES, task="multiclass")
+    with pytest.raises(ModelStoreError, match="binary"):
+        save_model(LogisticRegression().fit(X, y3), tmp_path / "b.joblib",
+                   feature_names=FEATURES, task="classification")
+    with pytest.raises(ModelStoreError, match="class_names"):
+        save_model(LogisticRegression().fit(X, y3), tmp_path / "c.joblib",
+                   feature_names=FEATURES, task="multiclass", class_names=["a", "b"])
+    path = tmp_path / "d.joblib"
+    save_model(LogisticRegression(max_iter=500).fit(X, y3), path, feature_names=FEATURES,
+               task="multiclass")
+    m = _manifest(path)
+    m["classes"] = [0, 1, 3]
+    manifest_path_for(path).write_text(json.dumps(m))
+    with pytest.raises(ModelStoreError, match="differ from the manifest"):
+        load_model(path)
+    path = tmp_path / "e.json"
+    save_model(xgb.XGBClassifier(n_estimators=2).fit(X, y3), path, feature_names=FEATURES,
+               task="multiclass")
+    _rewrite_manifest(path, classes=[0, 1])
+    with pytest.raises(ModelStoreError, match="3 classes"):
+        load_model(path)
+
+
+def test_multi_output_regression(tmp_path, data):
+    X, _, y_reg, X_test = data
+    Y = np.stack([y_reg, 2 * y_reg + X[:, 0]], axis=1)
+    model = Ridge().fit(X, Y)
+    path = tmp_path / "r.joblib"
+    save_model(model, path, feature_names=FEATURES, task="regression", target_names=["a", "b"])
+    lm = load_model(path)
+    assert lm.target_names == ("a", "b")
+    np.testing.assert_allclose(lm.predict(X_test), model.predict(X_test))
+    assert lm.predict_value(np.empty((0, 4))).shape == (0, 2)
+    with pytest.raises(ModelStoreError, match="target_names need a regression"):
+        save_model(LogisticRegression().fit(X, data[1]), tmp_path / "x.joblib",
+                   feature_names=FEATURES, task="classification", target_names=["a"])

@@ -1,0 +1,1 @@
+"""Reference lidar perception learned on simulated scans (no rclpy outside ``*_node``)."""
