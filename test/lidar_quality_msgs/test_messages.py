@@ -2,9 +2,9 @@
 import math
 
 import pytest
-from lidar_quality_msgs.msg import (ClusterUncertainty, ClusterUncertaintyArray,
-                                    DetectionQuality, DetectionQualityArray, SegmentQuality,
-                                    SegmentQualityArray)
+from lidar_quality_msgs.msg import (BoxVariance, BoxVarianceArray, ClusterUncertainty,
+                                    ClusterUncertaintyArray, DetectionQuality,
+                                    DetectionQualityArray, SegmentQuality, SegmentQualityArray)
 from std_msgs.msg import Header
 from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesisWithPose
 
@@ -41,6 +41,13 @@ def _cluster_uncertainty_array():
                                      predicted_iou=0.55)])
 
 
+def _box_variance_array():
+    return BoxVarianceArray(
+        header=_header(), variances=[BoxVariance(detection_index=i, detection_id=f"h{i}",
+                                                 x=0.1 * i, y=0.2, z=0.05, length=0.3, width=0.04,
+                                                 height=0.02, yaw=0.01) for i in range(2)])
+
+
 def _detection3d_array():
     det = Detection3D(header=_header(), id="track-42")
     det.bbox.center.position.x, det.bbox.center.orientation.w = 10.5, 1.0
@@ -54,6 +61,7 @@ def _detection3d_array():
 
 @pytest.mark.parametrize("factory", [_detection_quality_array, _segment_quality_array,
                                      _cluster_uncertainty_array, _detection3d_array,
+                                     _box_variance_array,
                                      lambda: _detection_quality_array().detections[0],
                                      lambda: _segment_quality_array().segments[0],
                                      lambda: _cluster_uncertainty_array().clusters[0]])
@@ -79,6 +87,9 @@ def test_field_names_self_explaining():
         "predicted_iou"}
     assert set(SegmentQuality.get_fields_and_field_types()) >= {
         "segment_id", "class_index", "class_name", "point_count", "confidence", "predicted_iou"}
+    assert [k for k, t in BoxVariance.get_fields_and_field_types().items() if t == "double"] == [
+        "x", "y", "z", "length", "width", "height", "yaw"]
+    assert BoxVarianceArray.get_fields_and_field_types()["header"] == "std_msgs/Header"
     for arr in (DetectionQualityArray, SegmentQualityArray, ClusterUncertaintyArray):
         f = arr.get_fields_and_field_types()
         assert f["header"] == "std_msgs/Header"
