@@ -109,9 +109,9 @@ def detections_to_arrays(detections) -> DetectionArrays:
 def arrays_to_detections(header, boxes: np.ndarray, labels, scores, *, ids=None,
                          class_scores: dict[str, np.ndarray] | None = None,
                          covariance_diagonal: np.ndarray | None = None):
-    """Build a Detection3DArray (one result per detection, or one per entry of
-    ``class_scores``); ``covariance_diagonal`` (N, 6) fills the pose covariance diagonal
-    (x, y, z, roll, pitch, yaw)."""
+    """Build a Detection3DArray (one result per detection, or one per finite entry of
+    ``class_scores``, highest score first); ``covariance_diagonal`` (N, 6) fills the pose
+    covariance diagonal (x, y, z, roll, pitch, yaw)."""
     from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesisWithPose
 
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
@@ -123,7 +123,8 @@ def arrays_to_detections(header, boxes: np.ndarray, labels, scores, *, ids=None,
         p.x, p.y, p.z = b[0], b[1], b[2]
         s.x, s.y, s.z = b[3], b[4], b[5]
         o.x, o.y, o.z, o.w = quat[i].tolist()
-        items = ([(c, float(v[i])) for c, v in class_scores.items() if np.isfinite(v[i])]
+        items = (sorted(((c, float(v[i])) for c, v in class_scores.items() if np.isfinite(v[i])),
+                        key=lambda cs: -cs[1])
                  if class_scores else [(str(labels[i]), float(scores[i]))])
         for cls, sc in items:
             hyp = ObjectHypothesisWithPose()

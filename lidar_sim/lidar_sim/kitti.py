@@ -50,9 +50,11 @@ def occlusion_level(occluded_fraction: np.ndarray) -> np.ndarray:
     return np.where(f < 0.2, 0, np.where(f < 0.6, 1, 2)).astype(int)
 
 
-def label_lines(boxes: np.ndarray, types: list[str], occluded_fraction: np.ndarray) -> list[str]:
+def label_lines(boxes: np.ndarray, types: list[str], occluded_fraction: np.ndarray,
+                scores=None) -> list[str]:
     """KITTI label lines for the lidar boxes (N, 7: centre x, y, z, l, w, h, yaw) whose
-    projection meets the image; truncation = share of the projected box outside it."""
+    projection meets the image; truncation = share of the projected box outside it.
+    With ``scores`` the lines are in KITTI's result format (a 16th column, the score)."""
     from lidar_quality_core.box_geometry import corners_3d
 
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
@@ -77,7 +79,8 @@ def label_lines(boxes: np.ndarray, types: list[str], occluded_fraction: np.ndarr
         lines.append(f"{types[i]} {truncated:.2f} {occ[i]} {alpha:.2f} "
                      f"{cx1:.2f} {cy1:.2f} {cx2:.2f} {cy2:.2f} "
                      f"{height:.2f} {width:.2f} {length:.2f} "
-                     f"{bottom[0]:.2f} {bottom[1]:.2f} {bottom[2]:.2f} {rotation_y:.2f}")
+                     f"{bottom[0]:.2f} {bottom[1]:.2f} {bottom[2]:.2f} {rotation_y:.2f}"
+                     + (f" {float(scores[i]):.4f}" if scores is not None else ""))
     return lines
 
 

@@ -47,7 +47,8 @@ def test_top_hypothesis_and_class_distribution():
 
 def test_covariance_and_class_scores_written():
     msg = arrays_to_detections(Header(), np.zeros((1, 7)) + [0, 0, 0, 1, 1, 1, 0], None, None,
-                               class_scores={"car": np.array([0.7]), "van": np.array([0.3])},
+                               class_scores={"van": np.array([0.3]), "car": np.array([0.7]),
+                                             "truck": np.array([np.nan])},
                                covariance_diagonal=np.array([[1, 2, 3, 0, 0, 4.0]]))
     res = msg.detections[0].results
     assert [(r.hypothesis.class_id, r.hypothesis.score) for r in res] == [("car", 0.7), ("van", 0.3)]

@@ -66,3 +66,14 @@ def test_projection_of_a_point_ahead():
     np.testing.assert_allclose(rect, [[0.0, 0.0, 20.0]], atol=1e-12)
     uv = kitti.project(rect)
     assert abs(uv[0, 0] - (609.5593 * 20 + 44.85728) / (20 + 0.002745884)) < 1e-9
+
+
+def test_result_format_has_score_column():
+    from lidar_sim.kitti import label_lines
+
+    boxes = np.array([[12.0, 1.0, -0.9, 4.2, 1.8, 1.6, 0.1], [15.0, -2.0, -0.9, 0.6, 0.6, 1.7, 0.0]])
+    plain = label_lines(boxes, ["Car", "Pedestrian"], np.zeros(2))
+    scored = label_lines(boxes, ["Car", "Pedestrian"], np.zeros(2), scores=[0.875, 0.25])
+    assert [len(line.split()) for line in plain] == [15, 15]
+    assert [line.split()[:15] for line in scored] == [line.split() for line in plain]
+    assert [float(line.split()[15]) for line in scored] == [0.875, 0.25]
