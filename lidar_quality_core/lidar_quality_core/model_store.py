@@ -65,6 +65,7 @@ __all__ = [
     "save_model",
     "load_model",
     "read_manifest",
+    "models_dir",
 ]
 
 MANIFEST_SUFFIX = ".manifest.json"
@@ -95,6 +96,15 @@ class ModelStoreError(Exception):
 
 class ModelStoreWarning(UserWarning):
     """Non-fatal model store issue (e.g. library versions differ from save time)."""
+
+
+def models_dir() -> Path:
+    """Directory of the shipped models: ``$LQ_MODELS_DIR`` if set, else the repository's
+    ``models/`` (found from this file, which a symlink install keeps in the checkout)."""
+    env = os.environ.get("LQ_MODELS_DIR")
+    if env:
+        return Path(env)
+    return Path(__file__).resolve().parents[2] / "models"
 
 
 def manifest_path_for(model_path: str | os.PathLike) -> Path:

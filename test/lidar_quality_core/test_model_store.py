@@ -488,3 +488,12 @@ def test_multi_output_regression(tmp_path, data):
     with pytest.raises(ModelStoreError, match="target_names need a regression"):
         save_model(LogisticRegression().fit(X, data[1]), tmp_path / "x.joblib",
                    feature_names=FEATURES, task="classification", target_names=["a"])
+
+
+def test_models_dir(monkeypatch, tmp_path):
+    from lidar_quality_core.model_store import models_dir
+
+    monkeypatch.delenv("LQ_MODELS_DIR", raising=False)
+    assert (models_dir().parent / "lidar_quality_core").is_dir()
+    monkeypatch.setenv("LQ_MODELS_DIR", str(tmp_path))
+    assert models_dir() == tmp_path
