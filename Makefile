@@ -11,11 +11,12 @@ WS_INPUTS := $(shell find -L ros2_ws/src -maxdepth 3 \( -name package.xml -o -na
 	-o -name setup.cfg -o -name CMakeLists.txt -o -name '*.msg' -o -name '*.yaml' \
 	-o -name '*.launch.py' \) -not -path '*/build/*' 2>/dev/null)
 
-.PHONY: help setup build test bench demo clean distclean lock
+.PHONY: help setup build test bench demo reference-models clean distclean lock
 
 help:
 	@echo "make demo   run the main job (set-up and build on first use)"
 	@echo "make test   run the test suite (set-up and build on first use)"
+	@echo "make reference-models   retrain the reference perception under models/reference"
 	@echo "make setup | build | bench | clean | distclean | lock"
 
 setup: $(SETUP_STAMP)
@@ -35,6 +36,11 @@ bench: build
 
 demo: build
 	bash scripts/with_env.sh python -m lidar_quality_ros.demo --out out/demo
+
+# Retrain the reference detector, multi-head detector and segmenter on the simulated
+# reference_train split and print their held-out quality (reference_test).
+reference-models: build
+	bash scripts/with_env.sh python -m reference_perception.train --out models/reference
 
 clean:
 	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log out .pytest_cache

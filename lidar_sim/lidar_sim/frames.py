@@ -24,10 +24,15 @@ _ARRAY_FIELDS = [f.name for f in fields(SimFrame) if f.name not in ("sequence", 
                                                                     "gt_kitti_type")]
 
 
+#: Modules whose code determines the simulated frames (writers and renderers do not).
+SIMULATOR_MODULES = ("classes", "primitives", "scene", "sequence", "raycast", "sensor",
+                     "simulate", "splits", "frames")
+
+
 def simulator_version() -> str:
     """Short hash of the simulator's source (the cache key)."""
     h = hashlib.sha256()
-    for p in sorted(Path(__file__).parent.glob("*.py")):
+    for p in (Path(__file__).parent / f"{m}.py" for m in SIMULATOR_MODULES):
         h.update(p.name.encode())
         h.update(p.read_bytes())
     return h.hexdigest()[:12]

@@ -52,32 +52,35 @@ def unoccluded_beams(prims: Primitives, cfg: SensorConfig, gt_boxes: np.ndarray,
     """Beams that would hit each object's parts if it were alone in the scene.
 
     Only the beams inside the object's angular window are cast (a bounded loop over the
-    frame's objects), against the object's own parts.
+    frame's objects), against the object's own parts. The window is the ray caster's own
+    culling interval of the GT box (the parts lie inside it): exact for boxes seen edge-on
+    from close by (the nearest point of a side, not a corner, bounds the elevation) and
+    for a sensor inside the footprint (full circle, +-90 deg).
     """
-    from lidar_quality_core.box_geometry import corners_3d
-
+    out = np.zeros(len(gt_boxes), dtype=np.int64)
+    if not len(gt_boxes):
+        return out
     dirs = beam_directions(cfg)                       # (rings, columns, 3)
     az = np.arctan2(dirs[0, :, 1], dirs[0, :, 0])     # per column
     el = np.arcsin(np.clip(dirs[:, 0, 2], -1, 1))     # per ring
-    out = np.zeros(len(gt_boxes), dtype=np.int64)
-    for k, corners in enumerate(corners_3d(gt_boxes)):
-        c_az = np.arctan2(corners[:, 1], corners[:, 0])
-        c_el = np.arctan2(corners[:, 2], np.hypot(corners[:, 0], corners[:, 1]))
-        # window in azimuth relative to the box centre direction (handles the seam)
-        mid = np.arctan2(gt_boxes[k, 1], gt_boxes[k, 0])
-        rel = (c_az - mid + np.pi) % (2 * np.pi) - np.pi
-        d_az = (az - mid + np.pi) % (2 * np.pi) - np.pi
-        if np.hypot(gt_boxes[k, 0], gt_boxes[k, 1]) < 0.5 * np.hypot(gt_boxes[k, 3], gt_boxes[k, 4]):
-            cols = np.arange(len(az))                 # sensor inside the footprint
-        else:
-            cols = np.flatnonzero((d_az >= rel.min() - 1e-3) & (d_az <= rel.max() + 1e-3))
-        rings = np.flatnonzero((el >= c_el.min() - 1e-3) & (el <= c_el.max() + 1e-3))
+    boxes = np.asarray(gt_boxes, dtype=np.float64).reshape(-1, 7)
+    kind = raycast._Kind(raycast.KIND_BOX, boxes, None, None, None)
+    # no ground: the window must hold every beam the parts could stop, whatever is below
+    obj, a0, a1, e0, e1 = raycast._intervals(kind, np.zeros(3), np.inf, cfg.max_range)
+    col_in = (az >= a0[:, None]) & (az <= a1[:, None])  # (intervals, columns): seam splits
+    ring_in = (el >= e0[:, None]) & (el <= e1[:, None])
+    for k in np.unique(obj):
+        rows = obj == k
+        cols = np.flatnonzero(col_in[rows].any(axis=0))
+        rings = np.flatnonzero(ring_in[rows][0])
         if not len(cols) or not len(rings):
             continue
         sub = dirs[np.ix_(rings, cols)].reshape(-1, 3)
         hits = raycast.cast(_object_parts(prims, int(gt_instance[k])), np.zeros(3), sub,
                             cfg.max_range)
-        out[k] = int((hits.t >= cfg.min_range).sum())
+        # misses come back with t = inf: count real hits only (the scan drops returns
+        # nearer than min_range)
+        out[k] = int((hits.hit & (hits.t >= cfg.min_range)).sum())
     return out
 
 

@@ -2,12 +2,13 @@
 from __future__ import annotations
 
 import array
-import os
 import struct
 from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
+from lidar_quality_core.pcd import read_pcd
+from realdata import REAL_FILES, realdata_dir
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -665,49 +666,7 @@ def test_property_build_decode_round_trip(layout, seed):
 
 # --------------------------------------------------------------------------- real clouds
 
-PCD_TYPES = {("F", 4): "f4", ("F", 8): "f8", ("U", 1): "u1", ("U", 2): "u2", ("U", 4): "u4",
-             ("I", 1): "i1", ("I", 2): "i2", ("I", 4): "i4"}
 PCD_TO_CODE = {"f4": 7, "f8": 8, "u1": 2, "u2": 4, "u4": 6, "i1": 1, "i2": 3, "i4": 5}
-REAL_FILES = ["hesai_40p", "hesai_64", "hesai_at128", "hesai_ot128", "hesai_qt128",
-              "hesai_qt64", "hesai_xt16", "hesai_xt32", "hesai_xt32m", "velodyne_vlp16",
-              "velodyne_vlp32", "velodyne_vls128"]
-
-
-def realdata_dir() -> Path:
-    env = os.environ.get("LQ_REALDATA")
-    return Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "realdata"
-
-
-def read_pcd(path: Path):
-    """Minimal PCD v0.7 ``DATA binary`` reader -> (structured array, header dict, raw bytes)."""
-    blob = path.read_bytes()
-    header, pos = {}, 0
-    while True:
-        end = blob.index(b"\n", pos)
-        line = blob[pos:end].decode("ascii").strip()
-        pos = end + 1
-        if not line or line.startswith("#"):
-            continue
-        key, *vals = line.split()
-        header[key] = vals
-        if key == "DATA":
-            break
-    assert header["DATA"] == ["binary"], header["DATA"]
-    names = header["FIELDS"]
-    counts = [int(c) for c in header.get("COUNT", ["1"] * len(names))]
-    types = [PCD_TYPES[(t, int(s))] for t, s in zip(header["TYPE"], header["SIZE"])]
-    offsets = np.cumsum([0] + [np.dtype(t).itemsize * c for t, c in zip(types, counts)])
-    layout = np.dtype({"names": names,
-                       "formats": [("<" + t) if c == 1 else ("<" + t, (c,))
-                                   for t, c in zip(types, counts)],
-                       "offsets": [int(o) for o in offsets[:-1]], "itemsize": int(offsets[-1])})
-    width, height = int(header["WIDTH"][0]), int(header["HEIGHT"][0])
-    points = int(header["POINTS"][0])
-    assert points == width * height
-    raw = blob[pos: pos + points * layout.itemsize]
-    assert len(raw) == points * layout.itemsize, "truncated PCD"
-    arr = np.frombuffer(raw, layout)
-    return (arr.reshape(height, width) if height > 1 else arr), layout, raw
 
 
 @pytest.fixture(scope="module")

@@ -26,3 +26,12 @@ def test_cache_round_trips_frames(tmp_path):
             np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
             np.testing.assert_array_equal(getattr(a, k), getattr(c, k))
     assert fresh[0].xyz.shape[0] > 50_000
+
+
+def test_simulator_modules_exist():
+    from pathlib import Path
+
+    import lidar_sim.frames as fr
+
+    here = Path(fr.__file__).parent
+    assert all((here / f"{m}.py").is_file() for m in fr.SIMULATOR_MODULES)
