@@ -97,6 +97,8 @@ def generate(out: Path, *, sequences: int, frames: int, seed: int, sensor: str =
                     stats["points"].append(len(f.xyz))
                     stats["objects"].update(names)
                     if errors_file is not None:
+                        # only boxes that reach the label files can carry an applied error
+                        visible &= kitti.in_image(f.gt_boxes)
                         recs = (inject_box_errors(f.gt_boxes[visible], f.gt_class[visible],
                                                   f.gt_instance[visible], confusions, err_rng, err_cfg)
                                 + inject_region_errors(f.xyz, f.semantic, region_classes, err_rng, err_cfg))

@@ -55,22 +55,13 @@ def label_lines(boxes: np.ndarray, types: list[str], occluded_fraction: np.ndarr
     """KITTI label lines for the lidar boxes (N, 7: centre x, y, z, l, w, h, yaw) whose
     projection meets the image; truncation = share of the projected box outside it.
     With ``scores`` the lines are in KITTI's result format (a 16th column, the score)."""
-    from lidar_quality_core.box_geometry import corners_3d
-
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     occ = occlusion_level(occluded_fraction)
     lines = []
-    for i, corners in enumerate(corners_3d(boxes)):
-        rect = velo_to_rect(corners)
-        if (rect[:, 2] <= 0.1).any():
-            continue  # behind or beside the camera: KITTI labels only what the image sees
-        uv = project(rect)
-        x1, y1 = uv.min(axis=0)
-        x2, y2 = uv.max(axis=0)
-        cx1, cy1 = max(x1, 0.0), max(y1, 0.0)
-        cx2, cy2 = min(x2, IMAGE_WIDTH - 1.0), min(y2, IMAGE_HEIGHT - 1.0)
-        if cx1 >= cx2 or cy1 >= cy2:
+    for i, img in enumerate(_image_boxes(boxes)):
+        if img is None:
             continue
+        x1, y1, x2, y2, cx1, cy1, cx2, cy2 = img
         truncated = 1.0 - (cx2 - cx1) * (cy2 - cy1) / ((x2 - x1) * (y2 - y1))
         x, y, z, length, width, height, yaw = boxes[i]
         bottom = velo_to_rect(np.array([[x, y, z - height / 2]]))[0]
@@ -82,6 +73,31 @@ def label_lines(boxes: np.ndarray, types: list[str], occluded_fraction: np.ndarr
                      f"{bottom[0]:.2f} {bottom[1]:.2f} {bottom[2]:.2f} {rotation_y:.2f}"
                      + (f" {float(scores[i]):.4f}" if scores is not None else ""))
     return lines
+
+
+def _image_boxes(boxes: np.ndarray) -> list:
+    """Per box: its projected 2D box and the part inside the image
+    ``(x1, y1, x2, y2, cx1, cy1, cx2, cy2)``, or None when KITTI would not label it."""
+    from lidar_quality_core.box_geometry import corners_3d
+
+    out = []
+    for corners in corners_3d(np.asarray(boxes, dtype=np.float64).reshape(-1, 7)):
+        rect = velo_to_rect(corners)
+        if (rect[:, 2] <= 0.1).any():
+            out.append(None)  # behind or beside the camera: KITTI labels only what the image sees
+            continue
+        uv = project(rect)
+        x1, y1 = uv.min(axis=0)
+        x2, y2 = uv.max(axis=0)
+        cx1, cy1 = max(x1, 0.0), max(y1, 0.0)
+        cx2, cy2 = min(x2, IMAGE_WIDTH - 1.0), min(y2, IMAGE_HEIGHT - 1.0)
+        out.append((x1, y1, x2, y2, cx1, cy1, cx2, cy2) if cx1 < cx2 and cy1 < cy2 else None)
+    return out
+
+
+def in_image(boxes: np.ndarray) -> np.ndarray:
+    """Which lidar boxes KITTI labels: those whose projection meets the camera image."""
+    return np.array([b is not None for b in _image_boxes(boxes)], dtype=bool)
 
 
 def _wrap(a: float) -> float:

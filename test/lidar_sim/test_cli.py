@@ -64,3 +64,23 @@ def test_annotated_labels_differ_only_by_listed_errors(tmp_path):
         ann = [l.split()[0] for l in annotated.read_text().splitlines()]
         if label.stem not in touched_types and len(clean) == len(ann):
             assert clean == ann  # e.g. a Van stays a Van when no error touched it
+
+
+def test_every_listed_box_error_shows_in_the_label_files(tmp_path):
+    """Errors are only injected on boxes KITTI labels (in the camera image): a listed
+    'missing' box is one label line fewer, a listed shift / resize / class change alters a
+    line, so no listed error is invisible in the annotated files."""
+    out = tmp_path / "sim"
+    main(["generate", "--sequences", "1", "--frames", "3", "--seed", "11", "--out", str(out),
+          "--annotation-errors", "--quiet"])
+    errors = [json.loads(l) for l in (out / "annotated" / "errors.jsonl").read_text().splitlines()]
+    box_errors = [e for e in errors if e["kind"] in ("missing", "shifted", "resized", "wrong_class")]
+    assert box_errors
+    for fid in sorted({e["kitti_frame_id"] for e in box_errors}):
+        clean = (out / "kitti" / "training" / "label_2" / f"{fid}.txt").read_text().splitlines()
+        ann = (out / "annotated" / "kitti" / "training" / "label_2" / f"{fid}.txt").read_text().splitlines()
+        mine = [e for e in box_errors if e["kitti_frame_id"] == fid]
+        n_missing = sum(e["kind"] == "missing" for e in mine)
+        assert len(clean) - len(ann) == n_missing
+        # each touched object's clean line is gone (removed or altered) from the annotated file
+        assert len(set(clean) - set(ann)) == len({e["instance"] for e in mine})
