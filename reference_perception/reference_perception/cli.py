@@ -1,0 +1,296 @@
+"""``reference-perception``: run the reference perception offline, without DDS.
+
+    reference-perception bag --in data/sim/bags/seq_00 --out data/perception/seq_00
+    reference-perception split --split demo --out data/perception/demo
+    reference-perception kitti --root data/sim/kitti --out out/kitti_results
+    reference-perception semantickitti --root data/sim/semantickitti --out out/sk_pred
+
+``bag`` copies every message of the input bag and adds, stamped like the cloud they come
+from (topic prefix ``--prefix``, default ``/perception``):
+
+- ``detections`` / ``proposals``: post-NMS / pre-NMS Detection3DArray of the detector;
+- ``segmentation``: PointCloud2, the cloud's points with one probability field per class;
+- ``head_k`` and ``head_k/variance`` (k < ``--heads``): the multi-head detector's heads.
+
+This "perception bag" is the standard input of the demo and of the node tests. ``split``
+simulates a data split (``lidar_sim.splits``) sequence by sequence into perception bags.
+``kitti`` writes KITTI result files (label format plus a score column) for a KITTI object
+dataset's velodyne scans; ``semantickitti`` writes ``predictions/*.label`` and
+``probabilities/*.npy`` (float32 (N, classes), class order of ``lidar_sim.classes``).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+PROB_TOPIC, DET_TOPIC, PROP_TOPIC = "segmentation", "detections", "proposals"
+POINTS_TOPIC = "/lidar/points"
+
+
+class Perception:
+    """The reference models, loaded once; ``run`` gives every output of one cloud."""
+
+    def __init__(self, *, detector: bool = True, segmenter: bool = True, heads: int = 2,
+                 model_dir: Path | None = None):
+        from .detector import ReferenceDetector
+        from .segmenter import DEFAULT_MODEL_PATH, ReferenceSegmenter
+
+        self.detector = ReferenceDetector(model_dir) if detector else None
+        seg_path = (Path(model_dir) / DEFAULT_MODEL_PATH.name) if model_dir else DEFAULT_MODEL_PATH
+        self.segmenter = ReferenceSegmenter.load(seg_path) if segmenter else None
+        self.multihead = None
+        if heads:
+            from .multihead import MultiHeadDetector
+
+            self.multihead = MultiHeadDetector(model_dir, num_heads=heads)
+
+    def run(self, xyz, intensity, ring=None) -> dict:
+        out = {}
+        finite = np.isfinite(xyz).all(axis=1)
+        x, i, r = xyz[finite], intensity[finite], None if ring is None else ring[finite]
+        props = None
+        if self.detector is not None:
+            props = self.detector.proposals(x, i, r)
+            out["detector"] = self.detector.detect_proposals(props)
+        if self.multihead is not None:
+            out["heads"] = (self.multihead.detect_proposals(props) if props is not None
+                            else self.multihead.detect(x, i, r))
+        if self.segmenter is not None:
+            out["probs"] = self.segmenter.predict_proba(xyz, intensity, ring)
+        return out
+
+
+def _messages(header, cloud, result: dict, quantize: bool):
+    """(relative topic, msgtype, message) of one cloud's outputs."""
+    from lidar_sim.classes import CLASS_NAMES
+
+    from .detector_node import detector_messages
+    from .messages import probability_cloud
+    from .multihead_node import head_messages
+
+    msgs = []
+    if "detector" in result:
+        dets, props = detector_messages(header, result["detector"])
+        msgs += [(DET_TOPIC, "vision_msgs/msg/Detection3DArray", dets),
+                 (PROP_TOPIC, "vision_msgs/msg/Detection3DArray", props)]
+    if "heads" in result:
+        for k, (dets, var) in enumerate(head_messages(header, result["heads"])):
+            msgs += [(f"head_{k}", "vision_msgs/msg/Detection3DArray", dets),
+                     (f"head_{k}/variance", "lidar_quality_msgs/msg/BoxVarianceArray", var)]
+    if "probs" in result:
+        msgs.append((PROB_TOPIC, "sensor_msgs/msg/PointCloud2",
+                     probability_cloud(header, cloud.xyz, cloud.intensity, result["probs"],
+                                       CLASS_NAMES, quantize=quantize)))
+    return msgs
+
+
+def _kitti_lines(det, scores_of="detector") -> list[str]:
+    from lidar_sim import classes, kitti
+
+    boxes, labels, scores = det.boxes[det.keep], det.labels[det.keep], det.scores[det.keep]
+    types = [classes.kitti_type(int(c)) for c in labels]
+    # KITTI result files carry no occlusion estimate: 0
+    return kitti.label_lines(boxes, types, np.zeros(len(boxes)), scores=scores)
+
+
+def process_bag(src: Path, dst: Path, perception: Perception, *, points_topic: str = POINTS_TOPIC,
+                prefix: str = "/perception", storage: str = "mcap", quantize: bool = False,
+                kitti_results: Path | None = None, quiet: bool = False) -> dict:
+    """Copy ``src`` into ``dst`` adding the perception outputs of every cloud."""
+    from lidar_quality_ros.bag_io import BagWriter, bag_topics, read_bag
+
+    from .cloud_input import read_cloud
+
+    if points_topic not in bag_topics(src):
+        raise SystemExit(f"{src}: no topic {points_topic} (topics: {sorted(bag_topics(src))})")
+    if kitti_results:
+        Path(kitti_results).mkdir(parents=True, exist_ok=True)
+    n, t_model, t0 = 0, 0.0, time.monotonic()
+    with BagWriter(dst, storage=storage) as w:
+        for m in read_bag(src):
+            w.write(m.topic, m.msgtype, m.stamp_ns, m.raw)
+            if m.topic != points_topic:
+                continue
+            msg = m.decode()
+            cloud = read_cloud(msg)
+            t1 = time.perf_counter()
+            result = perception.run(cloud.xyz, cloud.intensity, cloud.ring)
+            t_model += time.perf_counter() - t1
+            for rel, msgtype, out in _messages(msg.header, cloud, result, quantize):
+                w.write(f"{prefix.rstrip('/')}/{rel}", msgtype, m.stamp_ns, out)
+            if kitti_results and "detector" in result:
+                (Path(kitti_results) / f"{n:06d}.txt").write_text(
+                    "".join(line + "\n" for line in _kitti_lines(result["detector"])))
+            n += 1
+            if not quiet:
+                sys.stderr.write(f"\r{dst.name}: {n} clouds ({n / (time.monotonic() - t0):.1f}/s)")
+    if not quiet:
+        sys.stderr.write("\n")
+    return {"clouds": n, "model_ms_per_cloud": 1e3 * t_model / max(n, 1),
+            "wall_s": time.monotonic() - t0}
+
+
+def process_split(split: str, out: Path, perception: Perception, *, storage: str = "mcap",
+                  quantize: bool = False, sequences=None, quiet: bool = False) -> list[Path]:
+    """Simulate a split's sequences and write one perception bag per sequence."""
+    from lidar_sim import classes
+    from lidar_sim.bag import SimBagWriter
+    from lidar_sim.frames import split_frames
+    from lidar_sim.splits import split as get_split
+
+    sp = get_split(split)
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for s in (range(sp.sequences) if sequences is None else sequences):
+        dst = out / f"seq_{s:02d}"
+        if dst.exists():
+            raise SystemExit(f"{dst} exists: remove it or choose another --out")
+        with tempfile.TemporaryDirectory(dir=out) as tmp:
+            sim = Path(tmp) / "sim"
+            with SimBagWriter(sim, storage=storage) as bag:
+                for f in split_frames(sp, sequences=[s]):
+                    bag.write_frame(f.stamp_ns, xyz=f.xyz, intensity=f.intensity, ring=f.ring,
+                                    label=f.semantic, instance=f.instance, gt_boxes=f.gt_boxes,
+                                    gt_class_names=[classes.class_name(c) for c in f.gt_class],
+                                    gt_ids=[str(k) for k in f.gt_instance])
+            process_bag(sim, dst, perception, storage=storage, quantize=quantize, quiet=quiet)
+        written.append(dst)
+    return written
+
+
+def _read_bin(path: Path):
+    scan = np.fromfile(path, dtype="<f4").reshape(-1, 4)
+    return np.ascontiguousarray(scan[:, :3]), np.ascontiguousarray(scan[:, 3])
+
+
+def process_kitti(root: Path, out: Path, perception: Perception, *, split: str = "training",
+                  quiet: bool = False) -> int:
+    """KITTI result files for ``root/<split>/velodyne/*.bin`` (heads: ``out/head_k/``)."""
+    from lidar_sim import classes, kitti
+
+    scans = sorted((Path(root) / split / "velodyne").glob("*.bin"))
+    if not scans:
+        raise SystemExit(f"no scans in {Path(root) / split / 'velodyne'}")
+    out.mkdir(parents=True, exist_ok=True)
+    for n, path in enumerate(scans, 1):
+        xyz, inten = _read_bin(path)
+        res = perception.run(xyz, inten)
+        if "detector" in res:
+            (out / f"{path.stem}.txt").write_text(
+                "".join(line + "\n" for line in _kitti_lines(res["detector"])))
+        for k, head in enumerate(res.get("heads", [])):
+            d = out / f"head_{k}"
+            d.mkdir(exist_ok=True)
+            boxes, labels, scores = head.boxes[head.keep], head.labels[head.keep], head.scores[head.keep]
+            lines = kitti.label_lines(boxes, [classes.kitti_type(int(c)) for c in labels],
+                                      np.zeros(len(boxes)), scores=scores)
+            (d / f"{path.stem}.txt").write_text("".join(line + "\n" for line in lines))
+            np.savez_compressed(d / f"{path.stem}.npz", boxes=boxes, class_probs=head.class_probs[head.keep],
+                                variances=head.variances[head.keep])
+        if not quiet:
+            sys.stderr.write(f"\r{n}/{len(scans)} scans")
+    if not quiet:
+        sys.stderr.write("\n")
+    return len(scans)
+
+
+def process_semantickitti(root: Path, out: Path, perception: Perception, *, sequences=None,
+                          quiet: bool = False) -> int:
+    """SemanticKITTI predictions and probabilities for ``root/sequences/NN/velodyne``."""
+    from lidar_sim.classes import to_semantickitti
+    from lidar_sim.semantickitti import encode_labels
+
+    seqs = sorted(p for p in (Path(root) / "sequences").iterdir() if p.is_dir())
+    if sequences is not None:
+        seqs = [p for p in seqs if int(p.name) in set(sequences)]
+    n = 0
+    for seq in seqs:
+        pred, prob = out / "sequences" / seq.name / "predictions", out / "sequences" / seq.name / "probabilities"
+        pred.mkdir(parents=True, exist_ok=True)
+        prob.mkdir(parents=True, exist_ok=True)
+        for path in sorted((seq / "velodyne").glob("*.bin")):
+            xyz, inten = _read_bin(path)
+            p = perception.run(xyz, inten)["probs"].astype(np.float32)
+            labels = encode_labels(to_semantickitti(p.argmax(axis=1)), np.zeros(len(p), np.uint32))
+            (pred / f"{path.stem}.label").write_bytes(labels.astype("<u4").tobytes())
+            np.save(prob / f"{path.stem}.npy", p)
+            n += 1
+            if not quiet:
+                sys.stderr.write(f"\r{seq.name}: {n} scans")
+    if not quiet:
+        sys.stderr.write("\n")
+    return n
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="reference-perception", description=__doc__.split("\n\n")[0])
+    sub = ap.add_subparsers(dest="cmd", required=True)
+
+    def common(p, heads=True):
+        p.add_argument("--models", type=Path, default=None, help="model directory (default: shipped)")
+        p.add_argument("--quiet", action="store_true")
+        if heads:
+            p.add_argument("--heads", type=int, default=2, help="multi-head heads (0: none)")
+            p.add_argument("--no-detector", action="store_true")
+            p.add_argument("--no-segmenter", action="store_true")
+
+    p = sub.add_parser("bag", help="add the perception outputs to a bag")
+    p.add_argument("--in", dest="src", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--points-topic", default=POINTS_TOPIC)
+    p.add_argument("--prefix", default="/perception")
+    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    p.add_argument("--quantize", action="store_true", help="uint8 probability fields")
+    p.add_argument("--kitti-results", type=Path, default=None)
+    common(p)
+    p = sub.add_parser("split", help="simulate a data split into perception bags")
+    p.add_argument("--split", required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--sequences", type=int, nargs="*", default=None)
+    p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
+    p.add_argument("--quantize", action="store_true")
+    common(p)
+    p = sub.add_parser("kitti", help="KITTI result files of a KITTI object dataset")
+    p.add_argument("--root", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--split", default="training")
+    common(p)
+    p = sub.add_parser("semantickitti", help="predictions of a SemanticKITTI dataset")
+    p.add_argument("--root", type=Path, required=True)
+    p.add_argument("--out", type=Path, required=True)
+    p.add_argument("--sequences", type=int, nargs="*", default=None)
+    common(p, heads=False)
+    a = ap.parse_args(argv)
+
+    if a.cmd == "semantickitti":
+        perception = Perception(detector=False, segmenter=True, heads=0, model_dir=a.models)
+        n = process_semantickitti(a.root, a.out, perception, sequences=a.sequences, quiet=a.quiet)
+        print(f"{n} scans -> {a.out}")
+        return 0
+    perception = Perception(detector=not a.no_detector, segmenter=not a.no_segmenter,
+                            heads=a.heads, model_dir=a.models)
+    if a.cmd == "bag":
+        if a.out.exists():
+            raise SystemExit(f"{a.out} exists")
+        stats = process_bag(a.src, a.out, perception, points_topic=a.points_topic, prefix=a.prefix,
+                            storage=a.storage, quantize=a.quantize, kitti_results=a.kitti_results,
+                            quiet=a.quiet)
+        print(f"{stats['clouds']} clouds, {stats['model_ms_per_cloud']:.0f} ms of models per cloud "
+              f"-> {a.out}")
+    elif a.cmd == "split":
+        for path in process_split(a.split, a.out, perception, storage=a.storage, quantize=a.quantize,
+                                  sequences=a.sequences, quiet=a.quiet):
+            print(path)
+    else:
+        n = process_kitti(a.root, a.out, perception, split=a.split, quiet=a.quiet)
+        print(f"{n} scans -> {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
