@@ -35,6 +35,9 @@ __all__ = [
     "ReliabilityDiagram",
     "reliability_diagram",
     "summary",
+    "confusion_matrix",
+    "per_class_iou",
+    "mean_iou",
 ]
 
 
@@ -242,3 +245,65 @@ def summary(
         it, ip = _pair(iou_true, iou_pred, "iou_pred")
         out.update(iou_n=float(it.size), iou_r2=r2(it, ip), iou_mae=mae(it, ip))
     return out
+
+
+# -- semantic segmentation ---------------------------------------------------------------
+# Confusion matrices are indexed [true class, predicted class]. Points whose true class is
+# ``ignore`` (SemanticKITTI: unlabeled) are left out entirely; a prediction of the ignored
+# class on a labelled point still counts as an error (a false negative of the true class).
+
+
+def _labels(y: Any, name: str, n_classes: int) -> np.ndarray:
+    a = np.asarray(y)
+    if a.ndim != 1:
+        a = a.reshape(-1)
+    if a.size and not np.issubdtype(a.dtype, np.integer):
+        if not np.all(np.isfinite(a)) or np.any(a != np.round(a)):
+            raise ValueError(f"{name} must hold integer class ids")
+    a = a.astype(np.int64)
+    if a.size and (a.min() < 0 or a.max() >= n_classes):
+        raise ValueError(f"{name} has class ids outside [0, {n_classes}): "
+                         f"[{a.min()}, {a.max()}]")
+    return a
+
+
+def confusion_matrix(y_true: Any, y_pred: Any, n_classes: int,
+                     ignore: int | None = None) -> np.ndarray:
+    """(n_classes, n_classes) int64 counts ``cm[true, pred]``; rows of ``ignore`` are 0."""
+    n_classes = int(n_classes)
+    if n_classes < 1:
+        raise ValueError(f"n_classes must be >= 1, got {n_classes}")
+    t = _labels(y_true, "y_true", n_classes)
+    p = _labels(y_pred, "y_pred", n_classes)
+    if t.shape != p.shape:
+        raise ValueError(f"length mismatch: y_true has {t.size}, y_pred has {p.size}")
+    if ignore is not None:
+        keep = t != ignore
+        t, p = t[keep], p[keep]
+    return np.bincount(t * n_classes + p, minlength=n_classes * n_classes).reshape(
+        n_classes, n_classes).astype(np.int64)
+
+
+def per_class_iou(cm: Any) -> np.ndarray:
+    """IoU ``TP / (TP + FP + FN)`` per class from a confusion matrix; nan where a class is
+    neither in the ground truth nor predicted (union 0)."""
+    cm = np.asarray(cm, dtype=np.float64)
+    if cm.ndim != 2 or cm.shape[0] != cm.shape[1]:
+        raise ValueError(f"confusion matrix must be square, got shape {cm.shape}")
+    tp = np.diag(cm)
+    union = cm.sum(axis=0) + cm.sum(axis=1) - tp
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(union > 0, tp / union, np.nan)
+
+
+def mean_iou(cm: Any, ignore: int | None = None) -> float:
+    """Mean IoU over the classes present in the ground truth (row sum > 0), ``ignore``
+    excluded (SemanticKITTI convention). A class that is only predicted, never true, is
+    left out of the mean (its false positives still lower the IoU of the true classes
+    they were taken from). nan if no class is present."""
+    cm = np.asarray(cm, dtype=np.float64)
+    iou = per_class_iou(cm)
+    present = cm.sum(axis=1) > 0
+    if ignore is not None:
+        present[int(ignore)] = False
+    return float(iou[present].mean()) if present.any() else float("nan")
