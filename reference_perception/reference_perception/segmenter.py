@@ -48,8 +48,8 @@ from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
-
 from lidar_quality_core import metrics as qm
+from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.range_image import RangeImageConfig, project, window_reduce
 from lidar_sim.classes import CLASS_NAMES, NUM_CLASSES, UNLABELED
 
@@ -66,8 +66,7 @@ __all__ = [
     "main",
 ]
 
-DEFAULT_MODEL_PATH = Path(__file__).resolve().parents[2] / "models" / "reference" / \
-    "segmenter.joblib"
+DEFAULT_MODEL_PATH = models_dir() / "reference" / "segmenter.joblib"
 
 FEATURE_NAMES: tuple[str, ...] = (
     "range", "z", "height", "intensity", "elevation_deg", "ring_frac",
