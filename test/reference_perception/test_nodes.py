@@ -1,5 +1,7 @@
 """The reference perception nodes over real DDS: parameters, QoS, outputs of a simulated
 frame, bad input, clean start / stop of the installed executables."""
+import copy
+
 import numpy as np
 import pytest
 from sim_clouds import frame_cloud
@@ -22,8 +24,10 @@ PKG = "reference_perception"
 
 
 def _bad_cloud(good):
-    bad = PointCloud2(header=good.header, height=1, width=3, point_step=4, row_step=12,
+    """A cloud without y / z, stamped one second before ``good``."""
+    bad = PointCloud2(header=copy.deepcopy(good.header), height=1, width=3, point_step=4, row_step=12,
                       data=bytes(12))
+    bad.header.stamp.sec = good.header.stamp.sec - 1
     bad.fields = [PointField(name="x", offset=0, datatype=PointField.FLOAT32, count=1)]
     return bad
 
