@@ -1,0 +1,417 @@
+"""LidarMetaDetect (LMD) box-wise features (paper section III; numpy only, no rclpy).
+
+One row per post-NMS box, columns named by :func:`feature_names` (the model store's
+feature list). Schemas:
+
+* ``"exact"`` / ``"threshold"`` (90 features, the paper's set), in this order:
+
+  1. 17 own-box quantities ``x, y, z, l, w, h, theta, score, class, volume (V = lwh),
+     surface (A = 2(lw + lh + wh)), size_ratio (F = V / A), points (P, points in the box),
+     points_frac (Phi = P / |X|), refl_max, refl_mean, refl_std`` (reflectance = the
+     cloud's intensity of the in-box points);
+  2. ``prop_<q>_<min|max|mean|std>`` over the proposal set Prop(b) for the 16 quantities
+     ``q`` other than ``class`` (64);
+  3. ``iou_3d_<stat>`` and ``iou_bev_<stat>`` between the box and its proposals (8);
+  4. ``n_proposals`` = N = |Prop(b)| (1).
+* ``"none"`` (17 features): post-NMS boxes only, for detectors that publish no
+  proposals (train the model on this schema).
+* Optional extra features, only when asked for (``extra_class_scores`` /
+  ``class_scores``): the detector's per-class scores of the box, ``class_score_<name>``,
+  appended after the base schema (absent hypotheses, NaN, count as 0).
+
+Decisions (``../shared/notes/method-details.md``, "LMD", from the authors' code
+MetaDetect3D; "ours" where the notes leave the choice to us):
+
+* Proposal set. Prop(b) always contains b itself, so N >= 1 (notes: "the output box
+  itself included, so N >= 1"). The other members are
+
+  - ``"exact"``: the NMS pre-image given by the caller (``preimage``): the proposals that
+    b's NMS survivor suppressed (notes, ours (a)). ``ProposalSets.from_nms`` builds it from
+    ``lidar_quality_core.nms.rotated_nms``; the survivor's own index may be in the set or
+    not, the result is the same (see "self copy").
+  - ``"threshold"``: every proposal whose rotated BEV IoU with b is strictly above
+    ``iou_threshold`` (``>``, as in the authors' code and in ``rotated_nms``, where IoU
+    equal to the threshold does not suppress), class not checked (authors; ``class_aware``
+    restricts to equal labels), default t = 0.5 (notes). Proposals with a score not above
+    ``proposal_score_threshold`` (authors: ``score > score_thr``) are ignored.
+  - Self copy: a proposal that *is* b (IoU_3D >= 1 - 1e-6; detectors normally publish the
+    survivor among the proposals) is not counted twice: b enters the set once, with its
+    own quantities. So a detector that includes its survivors in the proposal list and one
+    that does not give the same features. (The authors zero the highest IoU, which is the
+    survivor in their data.)
+* Set statistics: population std (``np.std``, as the authors). ``theta`` of a proposal
+  is taken as ``theta_b + wrap(theta_p - theta_b)`` (ours): near +-pi a set of almost
+  equal headings would otherwise get a spurious std of ~pi; a flipped heading still shows
+  as a deviation of ~pi. Own ``theta`` is wrapped to [-pi, pi) (ours: detectors differ in
+  yaw range).
+* IoU statistics: over Prop(b) without b itself (the authors zero the self match); with
+  no other member all four are 0 (authors). BEV statistics over all other members.
+  IoU_3D statistics: ``"threshold"``: over the other members with IoU_3D > t (the authors'
+  separate candidate set {IoU_3D > t}; it lies inside the BEV set since IoU_3D <= IoU_BEV);
+  ``"exact"``: over all other members of the pre-image.
+* In-box points: boundary inclusive, box centre convention (vision_msgs; mmdet3d uses the
+  bottom centre), ``box_geometry.points_in_boxes``. A point is used only if x, y, z and
+  intensity are finite (NaN points are ignored everywhere, also in |X|). Empty box (or
+  |X| = 0): P = 0, Phi = 0 and the reflectance statistics are 0 (authors: statistics of
+  [0]). Intensity is used as given (no rescaling): train and run on the same sensor scale.
+* ``class``: the class id as a number; string labels are mapped through ``class_names``
+  (unknown names -> -1).
+* Invalid post-NMS box (non-finite value or score, size <= 0): its row is all NaN, so it
+  can never be scored silently; the caller drops or flags it. Invalid proposals (same
+  rule) belong to no set.
+
+IoU_3D of a member pair is derived from its exact BEV IoU (intersection area
+``I = iou (a1 + a2) / (1 + iou)`` times the z overlap), which saves a second polygon
+clipping per pair.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+
+from lidar_quality_core.box_geometry import as_boxes, points_in_boxes, segment_stats
+from lidar_quality_core.iou import iou_bev_pairs, sparse_iou
+
+__all__ = ["MODES", "OWN_QUANTITIES", "SET_QUANTITIES", "STATS", "DEFAULT_IOU_THRESHOLD",
+           "SELF_IOU", "ProposalSets", "feature_names", "compute_features"]
+
+MODES = ("exact", "threshold", "none")
+OWN_QUANTITIES = ("x", "y", "z", "l", "w", "h", "theta", "score", "class", "volume",
+                  "surface", "size_ratio", "points", "points_frac", "refl_max", "refl_mean",
+                  "refl_std")
+SET_QUANTITIES = tuple(q for q in OWN_QUANTITIES if q != "class")
+STATS = ("min", "max", "mean", "std")
+DEFAULT_IOU_THRESHOLD = 0.5
+#: A proposal with IoU_3D >= SELF_IOU to the box is the box itself (float32 round trips).
+SELF_IOU = 1.0 - 1e-6
+
+_CLASS_COL = OWN_QUANTITIES.index("class")
+_THETA_COL = SET_QUANTITIES.index("theta")
+
+
+def _check_mode(mode: str) -> None:
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+
+
+def _extra_names(extra) -> tuple[str, ...]:
+    if extra is None:
+        return ()
+    if isinstance(extra, (int, np.integer)):
+        if extra < 0:
+            raise ValueError(f"extra_class_scores must be >= 0, got {extra}")
+        return tuple(f"class_score_{c}" for c in range(int(extra)))
+    return tuple(f"class_score_{c}" for c in extra)
+
+
+def feature_names(mode: str = "exact", extra_class_scores=None) -> tuple[str, ...]:
+    """Ordered feature names of ``mode`` (90 for ``"exact"`` / ``"threshold"``, 17 for
+    ``"none"``), plus ``class_score_<c>`` per class when ``extra_class_scores`` is a class
+    count or a sequence of class names."""
+    _check_mode(mode)
+    names = list(OWN_QUANTITIES)
+    if mode != "none":
+        names += [f"prop_{q}_{s}" for q in SET_QUANTITIES for s in STATS]
+        names += [f"iou_3d_{s}" for s in STATS] + [f"iou_bev_{s}" for s in STATS]
+        names.append("n_proposals")
+    return tuple(names) + _extra_names(extra_class_scores)
+
+
+@dataclass(frozen=True)
+class ProposalSets:
+    """Proposal indices per post-NMS box as CSR: box ``k`` owns
+    ``index[offsets[k]:offsets[k + 1]]``."""
+
+    offsets: np.ndarray  # (n_boxes + 1,) int64
+    index: np.ndarray    # int64 proposal indices
+
+    @classmethod
+    def from_lists(cls, sets: Sequence[Sequence[int]]) -> "ProposalSets":
+        """From one index sequence per box."""
+        counts = np.array([len(s) for s in sets], dtype=np.int64)
+        offsets = np.zeros(len(counts) + 1, dtype=np.int64)
+        np.cumsum(counts, out=offsets[1:])
+        parts = [np.asarray(s, dtype=np.int64).reshape(-1) for s in sets]
+        index = np.concatenate(parts) if parts else np.zeros(0, np.int64)
+        return cls(offsets, index)
+
+    @classmethod
+    def from_owner(cls, owner, n_boxes: int) -> "ProposalSets":
+        """From the owning box per proposal (``-1``: none)."""
+        owner = np.asarray(owner, dtype=np.int64).reshape(-1)
+        if len(owner) and owner.max(initial=-1) >= n_boxes:
+            raise ValueError(f"owner refers to box {owner.max()} of {n_boxes}")
+        sel = np.flatnonzero(owner >= 0)
+        order = sel[np.argsort(owner[sel], kind="stable")]
+        offsets = np.zeros(n_boxes + 1, dtype=np.int64)
+        np.cumsum(np.bincount(owner[sel], minlength=n_boxes), out=offsets[1:])
+        return cls(offsets, order.astype(np.int64))
+
+    @classmethod
+    def from_nms(cls, suppressed_by, keep) -> "ProposalSets":
+        """Pre-images of the survivors ``keep`` (post-NMS box k = proposal ``keep[k]``)
+        from ``rotated_nms(...)``: ``{j : suppressed_by[j] == keep[k]}``, survivor
+        included."""
+        sup = np.asarray(suppressed_by, dtype=np.int64).reshape(-1)
+        keep = np.asarray(keep, dtype=np.int64).reshape(-1)
+        pos = np.full(len(sup) + 1, -1, dtype=np.int64)  # [-1] -> -1 for dropped boxes
+        pos[keep] = np.arange(len(keep))
+        return cls.from_owner(pos[sup], len(keep))
+
+    def pairs(self) -> tuple[np.ndarray, np.ndarray]:
+        """(box index, proposal index) per member, grouped by box."""
+        off = np.asarray(self.offsets, dtype=np.int64)
+        return (np.repeat(np.arange(len(off) - 1), np.diff(off)),
+                np.asarray(self.index, dtype=np.int64)[off[0]:off[-1]])
+
+
+# ------------------------------------------------------------------ helpers
+def _wrap(a):
+    return (a + np.pi) % (2.0 * np.pi) - np.pi
+
+
+def _class_ids(labels, n: int, class_names) -> np.ndarray:
+    """Labels (ids or names) -> float class ids; unknown names -> -1."""
+    if labels is None:
+        return np.full(n, -1.0)
+    lab = np.asarray(labels).reshape(-1)
+    if len(lab) != n:
+        raise ValueError(f"labels has {len(lab)} entries for {n} boxes")
+    if lab.dtype.kind in "iubf":
+        return lab.astype(np.float64)
+    if class_names is not None:
+        lut = {str(c): float(k) for k, c in enumerate(class_names)}
+        return np.array([lut.get(str(s), -1.0) for s in lab.tolist()], dtype=np.float64)
+    try:
+        return lab.astype(np.int64).astype(np.float64)
+    except ValueError:
+        raise ValueError("string labels need class_names (or integer strings)") from None
+
+
+def _box_ok(b: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    with np.errstate(invalid="ignore"):
+        return (np.isfinite(b).all(axis=1) & np.isfinite(scores)
+                & (np.min(b[:, 3:6], axis=1, initial=np.inf) > 0.0))
+
+
+def _valid_points(points, intensity):
+    """(usable |X|, point mask or None when every point is usable)."""
+    # Any NaN / inf makes the sum non-finite; an overflowing sum of finite values only
+    # sends us to the exact check below.
+    if np.isfinite(np.sum(points)) and np.isfinite(np.sum(intensity)):
+        return len(points), None
+    ok = np.isfinite(intensity)
+    for c in range(3):
+        ok &= np.isfinite(points[:, c])
+    return int(np.count_nonzero(ok)), ok
+
+
+def _filter_csr(offsets, idx, ok):
+    """Drop the points with ``ok[idx] == False`` from a CSR membership."""
+    keep = ok[idx]
+    seg = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    new = np.zeros_like(offsets)
+    np.cumsum(np.bincount(seg[keep], minlength=len(offsets) - 1), out=new[1:])
+    return new, idx[keep]
+
+
+def _quantities(b, scores, st, n_points: int) -> np.ndarray:
+    """(n, 16) SET_QUANTITIES of boxes ``b`` with in-box point statistics ``st``."""
+    q = np.empty((len(b), len(SET_QUANTITIES)))
+    q[:, :6] = b[:, :6]
+    q[:, 6] = _wrap(b[:, 6])
+    q[:, 7] = scores
+    l, w, h = b[:, 3], b[:, 4], b[:, 5]
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        q[:, 8] = l * w * h
+        q[:, 9] = 2.0 * (l * w + l * h + w * h)
+        q[:, 10] = q[:, 8] / q[:, 9]
+    q[:, 11] = st.count
+    q[:, 12] = st.count / n_points if n_points else 0.0
+    q[:, 13] = st.max
+    q[:, 14] = st.mean
+    q[:, 15] = st.std
+    return q
+
+
+def _derived_iou_3d(a, b, iou_bev):
+    """IoU_3D of row pairs from their exact BEV IoU (see module docstring)."""
+    aa, ab = a[:, 3] * a[:, 4], b[:, 3] * b[:, 4]
+    inter = iou_bev * (aa + ab) / (1.0 + iou_bev)
+    top = np.minimum(a[:, 2] + a[:, 5] / 2, b[:, 2] + b[:, 5] / 2)
+    bot = np.maximum(a[:, 2] - a[:, 5] / 2, b[:, 2] - b[:, 5] / 2)
+    inter *= np.maximum(top - bot, 0.0)
+    union = aa * a[:, 5] + ab * b[:, 5] - inter
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(union > 0, inter / union, 0.0)
+    return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
+
+
+def _set_stats(rows: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(n, 4 * F) min/max/mean/std per column over consecutive non-empty segments."""
+    starts = np.zeros(len(counts), dtype=np.int64)
+    np.cumsum(counts[:-1], out=starts[1:])
+    cnt = counts[:, None].astype(np.float64)
+    mean = np.add.reduceat(rows, starts, axis=0) / cnt
+    dev = rows - np.repeat(mean, counts, axis=0)
+    dev *= dev
+    std = np.sqrt(np.add.reduceat(dev, starts, axis=0) / cnt)
+    out = np.stack([np.minimum.reduceat(rows, starts, axis=0),
+                    np.maximum.reduceat(rows, starts, axis=0), mean, std], axis=2)
+    return out.reshape(len(counts), -1)  # per quantity: min, max, mean, std
+
+
+def _iou_stats(values, box_of, n):
+    """(n, 4) min/max/mean/std of ``values`` grouped by ``box_of`` (0 for empty groups)."""
+    order = np.argsort(box_of, kind="stable")
+    offsets = np.zeros(n + 1, dtype=np.int64)
+    np.cumsum(np.bincount(box_of, minlength=n), out=offsets[1:])
+    st = segment_stats(values, offsets, order)
+    return np.column_stack([st.min, st.max, st.mean, st.std])
+
+
+# ------------------------------------------------------------------ features
+def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, proposals=None,
+                     mode: str = "exact", preimage=None,
+                     iou_threshold: float = DEFAULT_IOU_THRESHOLD, class_scores=None,
+                     class_names: Sequence[str] | None = None, class_aware: bool = False,
+                     proposal_score_threshold: float | None = None) -> np.ndarray:
+    """LMD features of the post-NMS ``boxes`` of one frame: (n_boxes, n_features) float64,
+    columns as ``feature_names(mode, class_scores.shape[1] if class_scores else None)``.
+
+    ``points_xyz`` (M, 3) and ``intensity`` (M,): the cloud. ``boxes`` (N, 7) ``x, y, z,
+    l, w, h, yaw``; ``scores`` (N,); ``labels`` class ids or names (with ``class_names``).
+    ``proposals``: ``(boxes, scores[, labels])`` pre-NMS, or None (= no proposals).
+    ``preimage`` (mode ``"exact"``): a :class:`ProposalSets`, or one index sequence per box.
+    ``iou_threshold``, ``class_aware``, ``proposal_score_threshold``: mode ``"threshold"``.
+    ``class_scores`` (N, C): appended as extra features, columns in the order of the class
+    names given to ``feature_names``. See the module docstring for every definition.
+    """
+    _check_mode(mode)
+    if not 0.0 <= float(iou_threshold) < 1.0:
+        raise ValueError(f"iou_threshold must be in [0, 1), got {iou_threshold}")
+    b = as_boxes(boxes)
+    n = len(b)
+    sc = np.asarray(scores, dtype=np.float64).reshape(-1)
+    if len(sc) != n:
+        raise ValueError(f"scores has {len(sc)} entries for {n} boxes")
+    cls = _class_ids(labels, n, class_names)
+    extra = None
+    if class_scores is not None:
+        extra = np.asarray(class_scores, dtype=np.float64)
+        if extra.ndim != 2 or len(extra) != n:
+            raise ValueError(f"class_scores must have shape ({n}, C), got {extra.shape}")
+        extra = np.nan_to_num(extra, nan=0.0)
+    pts = np.asarray(points_xyz)
+    if pts.dtype.kind != "f":
+        pts = pts.astype(np.float64)
+    pts = pts.reshape(-1, 3)
+    inten = np.asarray(intensity).reshape(-1)
+    if len(inten) != len(pts):
+        raise ValueError(f"intensity has {len(inten)} entries for {len(pts)} points")
+    n_feat = len(feature_names(mode, None if extra is None else extra.shape[1]))
+    if n == 0:
+        return np.zeros((0, n_feat))
+    ok = _box_ok(b, sc)
+
+    # --- proposal sets (mode != "none"): member pairs (box d, proposal p) ---------------
+    if mode != "none":
+        pb, ps, plab = _unpack_proposals(proposals)
+        pok = _box_ok(pb, ps)
+        d, p, v_bev, v_3d = _member_pairs(mode, b, ok, cls, pb, ps, pok, plab, preimage,
+                                          float(iou_threshold), class_aware,
+                                          proposal_score_threshold, class_names)
+        # self copy: the best-3D-IoU member, if it is the box itself
+        is_self = np.zeros(len(d), dtype=bool)
+        cand = np.flatnonzero(v_3d >= SELF_IOU)
+        if len(cand):
+            cand = cand[np.lexsort((-v_3d[cand], d[cand]))]
+            first = np.unique(d[cand], return_index=True)[1]
+            is_self[cand[first]] = True
+        other = ~is_self
+        d, p, v_bev, v_3d = d[other], p[other], v_bev[other], v_3d[other]
+        need, prow = np.unique(p, return_inverse=True)
+        allb = np.concatenate([b, pb[need]])
+    else:
+        allb = b
+
+    # --- in-box points and per-box quantities -------------------------------------------
+    n_pts, pmask = _valid_points(pts, inten)
+    offsets, idx = points_in_boxes(pts, allb)
+    if pmask is not None:
+        offsets, idx = _filter_csr(offsets, idx, pmask)
+    st = segment_stats(inten, offsets, idx)
+    allsc = sc if mode == "none" else np.concatenate([sc, ps[need]])
+    q = _quantities(allb, allsc, st, n_pts)
+
+    own = np.insert(q[:n], _CLASS_COL, cls, axis=1)
+    parts = [own]
+    if mode != "none":
+        # Rows per box: the box itself first, then its other members.
+        counts = 1 + np.bincount(d, minlength=n)
+        seg = np.concatenate([np.arange(n), d])
+        order = np.argsort(seg, kind="stable")
+        rows = np.concatenate([q[:n], q[n:][prow]])[order]
+        seg = seg[order]
+        th = _wrap(b[:, 6])[seg]  # headings relative to the box's own
+        rows[:, _THETA_COL] = th + _wrap(rows[:, _THETA_COL] - th)
+        parts.append(_set_stats(rows, counts))
+        sel3 = v_3d > iou_threshold if mode == "threshold" else np.ones(len(d), dtype=bool)
+        parts.append(_iou_stats(v_3d[sel3], d[sel3], n))
+        parts.append(_iou_stats(v_bev, d, n))
+        parts.append(counts[:, None].astype(np.float64))
+    if extra is not None:
+        parts.append(extra)
+    out = np.concatenate(parts, axis=1)
+    out[~ok] = np.nan
+    return out
+
+
+def _unpack_proposals(proposals):
+    if proposals is None:
+        return np.zeros((0, 7)), np.zeros(0), None
+    if len(proposals) not in (2, 3):
+        raise ValueError("proposals must be (boxes, scores) or (boxes, scores, labels)")
+    pb = as_boxes(proposals[0])
+    ps = np.asarray(proposals[1], dtype=np.float64).reshape(-1)
+    if len(ps) != len(pb):
+        raise ValueError(f"proposal scores has {len(ps)} entries for {len(pb)} proposals")
+    plab = proposals[2] if len(proposals) == 3 else None
+    return pb, ps, plab
+
+
+def _member_pairs(mode, b, ok, cls, pb, ps, pok, plab, preimage, t, class_aware,
+                  score_thr, class_names):
+    """(box, proposal, IoU_BEV, IoU_3D) of every member of every set, grouped by box."""
+    n = len(b)
+    if mode == "exact":
+        if preimage is None:
+            if len(pb):
+                raise ValueError('mode "exact" needs preimage (the NMS pre-image per box)')
+            preimage = ProposalSets(np.zeros(n + 1, np.int64), np.zeros(0, np.int64))
+        if not isinstance(preimage, ProposalSets):
+            preimage = ProposalSets.from_lists(preimage)
+        if len(preimage.offsets) != n + 1:
+            raise ValueError(f"preimage has {len(preimage.offsets) - 1} sets for {n} boxes")
+        d, p = preimage.pairs()
+        if len(p) and (p.min() < 0 or p.max() >= len(pb)):
+            raise ValueError(f"preimage refers to proposals outside 0..{len(pb) - 1}")
+        keep = pok[p] & ok[d]
+        d, p = d[keep], p[keep]
+        v = iou_bev_pairs(b[d], pb[p])
+    else:
+        use = pok.copy()
+        if score_thr is not None:
+            with np.errstate(invalid="ignore"):
+                use &= ps > score_thr
+        sel = np.flatnonzero(use)
+        d, j, v = sparse_iou(b, pb[sel], "bev")
+        p = sel[j]
+        m = (v > t) & ok[d]
+        if class_aware:
+            pcls = _class_ids(plab, len(pb), class_names)
+            m &= cls[d] == pcls[p]
+        d, p, v = d[m], p[m], v[m]
+    return d, p, v, _derived_iou_3d(b[d], pb[p], v)
