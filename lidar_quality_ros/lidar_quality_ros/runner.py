@@ -9,6 +9,32 @@ from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
 
+class _DrainingExecutor(MultiThreadedExecutor):
+    """A MultiThreadedExecutor that can stop spinning and drain before it shuts down.
+
+    Jazzy's ``Executor.shutdown`` skips its wait for callbacks in flight (the condition is
+    inverted) and destroys the wake-up guard condition under them; a callback finishing
+    afterwards triggers the destroyed guard and rclpy prints an InvalidHandle traceback.
+    So: stop the spin loop, let the handlers already submitted finish, then shut down.
+    """
+
+    def stop_spinning(self) -> None:
+        try:
+            with self._shutdown_lock:
+                self._is_shutdown = True  # spin() leaves its loop; shutdown() still cleans up
+                if self._guard:
+                    self._guard.trigger()
+        except AttributeError:  # a future rclpy without these internals: plain shutdown
+            pass
+
+    def drain(self, timeout_sec: float) -> None:
+        try:
+            self._work_tracker.wait(timeout_sec)
+            self._executor.shutdown(wait=True)  # handlers still queued run with the guard alive
+        except AttributeError:
+            pass
+
+
 def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
     """Create the node, spin it until SIGINT / SIGTERM and return the exit code.
 
@@ -25,7 +51,7 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
     code = 0
     try:
         node = node_factory()
-        executor = MultiThreadedExecutor(num_threads=num_threads)
+        executor = _DrainingExecutor(num_threads=num_threads)
         executor.add_node(node)
         # spin() keeps its wait set between callbacks (spin_once rebuilds it: far too
         # slow at sensor rates); it runs beside the main thread, which waits for a signal.
@@ -51,9 +77,12 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
             if stop_processing is not None:
                 stop_processing()
         if executor is not None:
-            executor.shutdown(timeout_sec=2.0)
+            executor.stop_spinning()
         if spinner is not None:
             spinner.join(timeout=5.0)
+        if executor is not None:
+            executor.drain(timeout_sec=2.0)
+            executor.shutdown(timeout_sec=0)
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
