@@ -1,0 +1,328 @@
+"""Tests for mimo_ros.merging (LiDAR-MIMO clustering and merging)."""
+import math
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from sklearn.cluster import DBSCAN
+
+from lidar_quality_core.iou import sparse_iou
+from mimo_ros.merging import (HeadDetections, MergeConfig, dbscan_pairs, dbscan_sklearn,
+                              merge_heads, min_cluster_size, neighbour_pairs)
+
+CAR = np.array([10.0, 5.0, -1.0, 4.5, 1.9, 1.6, 0.3])
+PED = np.array([10.5, 5.0, -1.0, 0.8, 0.7, 1.7, 0.0])  # inside the car's footprint
+CAR_LOGITS = np.log([0.05, 0.8, 0.05, 0.05, 0.05])      # column 0 background, 1 car
+PED_LOGITS = np.log([0.1, 0.05, 0.05, 0.75, 0.05])
+VAR = np.array([0.04, 0.04, 0.01, 0.02, 0.01, 0.01, 0.003])
+
+
+def head(boxes, logits, var=None):
+    boxes = np.atleast_2d(np.asarray(boxes, float))
+    logits = np.atleast_2d(np.asarray(logits, float))
+    return HeadDetections(boxes, np.repeat(logits, len(boxes), 0) if len(logits) == 1 else logits,
+                          None if var is None else np.tile(var, (len(boxes), 1)))
+
+
+def h2(p):
+    return -sum(x * math.log2(x) for x in p if x > 0)
+
+
+def softmax(z):
+    e = np.exp(z - np.max(z))
+    return e / e.sum()
+
+
+# ------------------------------------------------------------------ voting rules
+@pytest.mark.parametrize("K, rules", [(1, (1, 1, 1)), (2, (1, 2, 2)), (3, (1, 2, 3)),
+                                      (4, (1, 3, 4)), (5, (1, 3, 5))])
+def test_min_cluster_size(K, rules):
+    assert tuple(min_cluster_size(v, K) for v in ("affirmative", "consensus", "unanimous")) == rules
+
+
+def test_config_validation():
+    for bad in (dict(eps=0.0), dict(eps=1.0), dict(voting="majority"), dict(temperature=0.0),
+                dict(score_type="scores"), dict(dbscan="hdbscan"), dict(min_cluster_size=0)):
+        with pytest.raises(ValueError):
+            MergeConfig(**bad)
+    assert MergeConfig(min_cluster_size=3).min_samples(2) == 3
+    assert MergeConfig().min_samples(4) == 3
+
+
+# ------------------------------------------------------------------ issue's cases
+@pytest.mark.parametrize("K", [2, 4])
+def test_identical_heads(K):
+    boxes = np.stack([CAR, CAR + [20, 0, 0, 0, 0, 0, 0]])
+    logits = np.stack([CAR_LOGITS, PED_LOGITS])
+    r = merge_heads([head(boxes, logits, VAR)] * K)
+    assert len(r) == 2 and r.min_samples == min_cluster_size("consensus", K)
+    np.testing.assert_allclose(r.boxes, boxes)
+    np.testing.assert_array_equal(r.stats.epistemic_total_variance, 0.0)
+    np.testing.assert_allclose(r.stats.mutual_information, 0.0, atol=1e-12)
+    np.testing.assert_array_equal(r.stats.cluster_size, K)
+    np.testing.assert_allclose(r.class_probs, [softmax(CAR_LOGITS), softmax(PED_LOGITS)])
+    assert r.labels.tolist() == [1, 3]
+    np.testing.assert_allclose(r.scores, [0.8, 0.75])
+    np.testing.assert_allclose(r.stats.aleatoric_total_variance, VAR.sum())
+    np.testing.assert_allclose(r.stats.predictive_variance, np.tile(VAR, (2, 1)))
+    for c in range(2):
+        hd, idx = r.members(c)
+        assert sorted(hd.tolist()) == list(range(K)) and set(idx.tolist()) == {c}
+
+
+def test_known_offset_gives_known_etv():
+    d = np.array([0.2, -0.1, 0.05, 0.1, -0.06, 0.04, 0.02])
+    r = merge_heads([head(CAR, CAR_LOGITS, VAR), head(CAR + d, CAR_LOGITS, VAR)])
+    assert len(r) == 1 and r.stats.cluster_size[0] == 2
+    np.testing.assert_allclose(r.stats.epistemic_variance[0], (d / 2) ** 2, atol=1e-15)
+    assert r.stats.epistemic_total_variance[0] == pytest.approx(np.sum((d / 2) ** 2))
+    np.testing.assert_allclose(r.boxes[0, :6], CAR[:6] + d[:6] / 2)
+    # equal confidence: the top member is head 0's box, its yaw and yaw variance are used
+    assert r.boxes[0, 6] == CAR[6] and r.top_member[0] == 0
+    expected = (d / 2) ** 2 + VAR
+    expected[6] = VAR[6]
+    np.testing.assert_allclose(r.stats.predictive_variance[0], expected)
+
+
+def test_box_of_one_head_dropped_by_consensus_kept_by_affirmative():
+    lone = CAR + [30.0, 0, 0, 0, 0, 0, 0]
+    heads = [head([CAR, lone], CAR_LOGITS), head([CAR], CAR_LOGITS)]
+    r = merge_heads(heads)  # consensus, K = 2: min 2
+    assert len(r) == 1 and r.stats.cluster_size.tolist() == [2]
+    assert r.member_cluster.tolist() == [0, -1, 0]
+    assert r.member_head.tolist() == [0, 0, 1] and r.member_index.tolist() == [0, 1, 0]
+    a = merge_heads(heads, MergeConfig(voting="affirmative"))
+    assert len(a) == 2 and sorted(a.stats.cluster_size.tolist()) == [1, 2]
+    single = a.member_cluster[1]
+    np.testing.assert_allclose(a.boxes[single], lone)
+    assert a.stats.epistemic_total_variance[single] == 0.0
+    u = merge_heads(heads + [head(np.zeros((0, 7)), np.zeros((0, 5)))],
+                    MergeConfig(voting="unanimous"))
+    assert len(u) == 0  # K = 3, the car is seen by two
+
+
+def test_yaw_near_pi_is_not_averaged():
+    a, b = CAR.copy(), CAR.copy()
+    a[6], b[6] = math.pi - 0.01, -math.pi + 0.01
+    strong = np.log([0.02, 0.9, 0.04, 0.02, 0.02])
+    r = merge_heads([head(a, CAR_LOGITS), head(b, strong)])
+    assert len(r) == 1
+    assert r.boxes[0, 6] == b[6]  # head 1 is more confident
+    assert abs(r.boxes[0, 6]) > 3.1
+    assert r.stats.epistemic_variance[0, 6] == pytest.approx(1e-4)
+    raw = merge_heads([head(a, CAR_LOGITS), head(b, strong)], MergeConfig(yaw_deviation="raw"))
+    assert raw.stats.epistemic_variance[0, 6] == pytest.approx((math.pi - 0.01) ** 2)
+    assert raw.boxes[0, 6] == b[6]
+
+
+def test_hand_computed_entropies():
+    # head 0 [bg 0.5, car 0.5], head 1 [bg 0, car 1]: as probabilities and as logits
+    p0, p1 = np.array([0.5, 0.5]), np.array([0.0, 1.0])
+    se, ae = h2([0.25, 0.75]), 0.5
+    r = merge_heads([head(CAR, p0), head(CAR, p1)], MergeConfig(score_type="probabilities"))
+    assert r.stats.shannon_entropy[0] == pytest.approx(se, abs=1e-9)      # 0.8113
+    assert r.stats.aleatoric_entropy[0] == pytest.approx(ae, abs=1e-9)
+    assert r.stats.mutual_information[0] == pytest.approx(se - ae, abs=1e-9)
+    # the merged distribution is softmax of the mean logits (geometric mean): ~all car
+    assert r.labels[0] == 1 and r.scores[0] > 0.999
+    assert r.top_member[0] == 1
+    # three heads, five classes, logits
+    L = np.array([[0.0, 2.0, 0.5, -1.0, 0.0], [0.5, 1.0, 1.0, -0.5, 0.0],
+                  [-1.0, 0.0, 2.5, 0.0, 0.0]])
+    r = merge_heads([head(CAR, L[k]) for k in range(3)])
+    P = np.array([softmax(z) for z in L])
+    assert r.stats.shannon_entropy[0] == pytest.approx(h2(P.mean(axis=0)))
+    assert r.stats.aleatoric_entropy[0] == pytest.approx(np.mean([h2(p) for p in P]))
+    assert r.stats.mutual_information[0] == pytest.approx(
+        h2(P.mean(axis=0)) - np.mean([h2(p) for p in P]))
+    np.testing.assert_allclose(r.class_probs[0], softmax(L.mean(axis=0)))
+    assert r.labels[0] == 2 and r.scores[0] == pytest.approx(softmax(L.mean(axis=0))[2])
+
+
+def test_temperature():
+    L = [np.array([0.0, 2.0, 0.5, -1.0, 0.0]), np.array([0.5, 1.0, 1.0, -0.5, 0.0])]
+    T = 2.0
+    r = merge_heads([head(CAR, L[0]), head(CAR, L[1])], MergeConfig(temperature=T))
+    np.testing.assert_allclose(r.class_probs[0], softmax((L[0] + L[1]) / 2 / T))
+    P = [softmax(z / T) for z in L]
+    assert r.stats.shannon_entropy[0] == pytest.approx(h2(np.mean(P, axis=0)))
+
+
+def test_probabilities_match_log_probability_logits():
+    rng = np.random.default_rng(0)
+    boxes = np.stack([CAR + [x, 0, 0, 0, 0, 0, 0] for x in (0, 10, 20)])
+    P = [rng.dirichlet(np.ones(5), 3) for _ in range(2)]
+    a = merge_heads([head(boxes, p) for p in P], MergeConfig(score_type="probabilities"))
+    b = merge_heads([head(boxes, np.log(p)) for p in P])
+    np.testing.assert_allclose(a.class_probs, b.class_probs)
+    np.testing.assert_allclose(a.stats.shannon_entropy, b.stats.shannon_entropy)
+
+
+def test_class_aware_separates_overlapping_classes():
+    big_ped = CAR.copy()  # same footprint, but a pedestrian label
+    heads = [head(CAR, CAR_LOGITS), head(big_ped, PED_LOGITS)]
+    agnostic = merge_heads(heads, MergeConfig(voting="affirmative"))
+    assert len(agnostic) == 1 and agnostic.stats.cluster_size[0] == 2
+    assert agnostic.stats.mutual_information[0] > 0.1
+    aware = merge_heads(heads, MergeConfig(voting="affirmative", class_aware=True))
+    assert len(aware) == 2 and sorted(aware.labels.tolist()) == [1, 3]
+    assert len(merge_heads(heads, MergeConfig(class_aware=True))) == 0  # consensus
+
+
+def test_empty_heads():
+    for heads in ([], [head(np.zeros((0, 7)), np.zeros((0, 5)))] * 2,
+                  [HeadDetections(np.zeros((0, 7)), np.zeros(0))] * 3):
+        r = merge_heads(heads)
+        assert len(r) == 0 and r.boxes.shape == (0, 7)
+        assert r.stats.predictive_variance.shape == (0, 7)
+        assert r.member_cluster.shape == (0,)
+    assert merge_heads([head(np.zeros((0, 7)), np.zeros((0, 5)))] * 2).class_probs.shape == (0, 5)
+
+
+def test_a_head_with_zero_boxes():
+    heads = [head([CAR, PED + [20, 0, 0, 0, 0, 0, 0]], np.stack([CAR_LOGITS, PED_LOGITS]), VAR),
+             HeadDetections(np.zeros((0, 7)), np.zeros(0))]
+    assert len(merge_heads(heads)) == 0          # K = 2 still needs 2 votes
+    r = merge_heads(heads, MergeConfig(voting="affirmative"))
+    assert len(r) == 2 and r.member_head.tolist() == [0, 0]
+    np.testing.assert_array_equal(r.stats.epistemic_total_variance, 0.0)
+    np.testing.assert_allclose(r.stats.aleatoric_total_variance, VAR.sum())
+
+
+def test_invalid_members_are_noise_and_unknown_variances_nan():
+    bad = CAR.copy()
+    bad[0] = np.nan
+    nan_scores = CAR_LOGITS.copy()
+    nan_scores[2] = np.nan
+    h0 = HeadDetections(np.stack([CAR, bad, CAR]), np.stack([CAR_LOGITS, CAR_LOGITS, nan_scores]))
+    r = merge_heads([h0, head(CAR, CAR_LOGITS)])
+    assert r.member_cluster.tolist() == [0, -1, -1, 0]
+    assert np.isnan(r.stats.aleatoric_total_variance[0])
+    assert np.isnan(r.stats.predictive_variance[0]).all()
+    assert r.stats.epistemic_total_variance[0] == 0.0
+    # a -inf logit is invalid, a probability 0 is not
+    minus_inf = CAR_LOGITS.copy()
+    minus_inf[4] = -np.inf
+    r = merge_heads([head(CAR, minus_inf), head(CAR, CAR_LOGITS)])
+    assert r.member_cluster.tolist() == [-1, -1]
+    p = np.exp(CAR_LOGITS)
+    p[4] = 0.0
+    cfg = MergeConfig(score_type="probabilities")
+    assert merge_heads([head(CAR, p), head(CAR, p)], cfg).member_cluster.tolist() == [0, 0]
+
+
+def test_no_background_column():
+    L = np.array([0.1, 2.0, 0.3])
+    r = merge_heads([head(CAR, L)] * 2, MergeConfig(background_index=None))
+    assert r.labels[0] == 1
+    r = merge_heads([head(CAR, [3.0, 2.0, 0.3])] * 2, MergeConfig(background_index=None))
+    assert r.labels[0] == 0
+    with pytest.raises(ValueError, match="background_index"):
+        merge_heads([head(CAR, L)], MergeConfig(background_index=5))
+
+
+def test_shape_errors():
+    with pytest.raises(ValueError, match="class scores"):
+        merge_heads([HeadDetections(np.stack([CAR, CAR]), CAR_LOGITS[None])])
+    with pytest.raises(ValueError, match="class columns"):
+        merge_heads([head(CAR, CAR_LOGITS), head(CAR, CAR_LOGITS[:3])])
+    with pytest.raises(ValueError, match="variances"):
+        merge_heads([HeadDetections(CAR[None], CAR_LOGITS[None], np.zeros((1, 6)))])
+
+
+def test_from_head_output():
+    ho = SimpleNamespace(boxes=np.stack([CAR, PED, CAR]), logits=np.stack([CAR_LOGITS] * 3),
+                         variances=np.tile(VAR, (3, 1)), keep=np.array([2, 0]))
+    h = HeadDetections.from_head_output(ho)
+    assert h.boxes.shape == (2, 7) and h.variances.shape == (2, 7)
+    np.testing.assert_array_equal(h.class_scores, ho.logits[[2, 0]])
+
+
+def test_one_head_boxes_can_share_a_cluster():
+    near = CAR + [0.3, 0, 0, 0, 0, 0, 0]  # IoU ~0.87: a head whose NMS kept both
+    r = merge_heads([head([CAR, near], CAR_LOGITS), head(CAR, CAR_LOGITS)])
+    assert len(r) == 1 and r.stats.cluster_size[0] == 3
+
+
+# ------------------------------------------------------------------ DBSCAN and pairs
+def _sk(n, i, j, ms):
+    d = np.ones((n, n))
+    np.fill_diagonal(d, 0.0)
+    d[i, j] = d[j, i] = 0.0
+    return DBSCAN(eps=0.5, min_samples=ms, metric="precomputed").fit_predict(d)
+
+
+def test_dbscan_border_point_goes_to_the_first_cluster():
+    # cores 0-1 and 3-4 (min 2 with a chain), point 2 touches both as a border point
+    # with min_samples 3: 0, 1 ... build: 0-1, 1-2, 2-3, 3-4, and 0-5, 4-6
+    i = np.array([0, 1, 2, 3, 0, 4, 1])
+    j = np.array([1, 2, 3, 4, 5, 6, 5])
+    for ms in (1, 2, 3, 4):
+        np.testing.assert_array_equal(dbscan_pairs(7, i, j, ms), _sk(7, i, j, ms))
+
+
+@settings(max_examples=200, deadline=None)
+@given(st.integers(1, 25), st.integers(1, 5), st.integers(0, 2**31 - 1), st.floats(0.02, 0.4))
+def test_own_dbscan_equals_sklearn(n, ms, seed, density):
+    rng = np.random.default_rng(seed)
+    iu, ju = np.triu_indices(n, 1)
+    keep = rng.random(len(iu)) < density
+    i, j = iu[keep], ju[keep]
+    perm = rng.permutation(len(i))  # pair order must not matter
+    np.testing.assert_array_equal(dbscan_pairs(n, i[perm], j[perm], ms), _sk(n, i, j, ms))
+    np.testing.assert_array_equal(dbscan_sklearn(n, i, j, ms), _sk(n, i, j, ms))
+
+
+def _ref_pairs(boxes, eps, labels=None):
+    i, j, v = sparse_iou(boxes)
+    k = (1.0 - v) <= eps
+    if labels is not None:
+        k &= labels[i] == labels[j]
+    return set(zip(i[k].tolist(), j[k].tolist()))
+
+
+@settings(max_examples=150, deadline=None)
+@given(st.integers(2, 30), st.integers(0, 2**31 - 1), st.sampled_from([0.2, 0.5, 0.7, 0.9]),
+       st.sampled_from(["free", "square", "aligned", "near45", "copies"]))
+def test_neighbour_pairs_equal_thresholded_sparse_iou(n, seed, eps, kind):
+    rng = np.random.default_rng(seed)
+    b = np.column_stack([rng.uniform(0, 5, (n, 2)), np.zeros(n), rng.uniform(0.3, 4, (n, 2)),
+                         np.ones(n), rng.uniform(-4, 4, n)])
+    if kind == "square":
+        b[:, 4] = b[:, 3]
+    elif kind == "aligned":
+        b[:, 6] = rng.choice([0.0, math.pi / 2, math.pi, -math.pi], n)
+    elif kind == "near45":
+        b[:, 6] = rng.choice([0.0, math.pi / 4 + 1e-9, -math.pi / 4], n)
+    elif kind == "copies":  # jittered copies: IoU near every threshold
+        jitter = rng.normal(0, 0.15, (n - n // 2, 7)) * [1, 1, 0, 0.3, 0.3, 0, 0.3]
+        b[n // 2:] = b[: n - n // 2] + jitter
+        b[:, 3:5] = np.abs(b[:, 3:5]) + 0.05
+    labels = rng.integers(0, 2, n)
+    i, j = neighbour_pairs(b, eps)
+    assert np.all(i < j)
+    assert set(zip(i.tolist(), j.tolist())) == _ref_pairs(b, eps)
+    i, j = neighbour_pairs(b, eps, labels)
+    assert set(zip(i.tolist(), j.tolist())) == _ref_pairs(b, eps, labels)
+
+
+def test_neighbour_pairs_identical_and_invalid_boxes():
+    b = np.stack([CAR, CAR, CAR, PED])
+    b[2, 3] = 0.0
+    assert set(zip(*map(list, neighbour_pairs(b, 0.5)))) == {(0, 1)}
+    assert len(neighbour_pairs(b[:1], 0.5)[0]) == 0
+
+
+def test_sklearn_option_gives_the_same_merge():
+    rng = np.random.default_rng(5)
+    base = np.column_stack([rng.uniform(0, 40, (30, 2)), np.zeros(30), rng.uniform(0.5, 5, (30, 2)),
+                            np.ones(30), rng.uniform(-3, 3, 30)])
+    heads = [head(base + rng.normal(0, 0.2, base.shape) * [1, 1, 0, 0, 0, 0, 0.1],
+                  rng.normal(0, 1, (30, 5))) for _ in range(3)]
+    for voting in ("affirmative", "consensus", "unanimous"):
+        a = merge_heads(heads, MergeConfig(voting=voting))
+        b = merge_heads(heads, MergeConfig(voting=voting, dbscan="sklearn"))
+        np.testing.assert_array_equal(a.member_cluster, b.member_cluster)
+        np.testing.assert_allclose(a.boxes, b.boxes)
