@@ -50,9 +50,10 @@ class Perception:
             self.multihead = MultiHeadDetector(model_dir, num_heads=heads)
 
     def run(self, xyz, intensity, ring=None) -> dict:
+        from .cloud_input import finite_points
+
         out = {}
-        finite = np.isfinite(xyz).all(axis=1)
-        x, i, r = xyz[finite], intensity[finite], None if ring is None else ring[finite]
+        x, i, r = finite_points(xyz, intensity, ring)
         props = None
         if self.detector is not None:
             props = self.detector.proposals(x, i, r)
@@ -69,17 +70,16 @@ def _messages(header, cloud, result: dict, quantize: bool):
     """(relative topic, msgtype, message) of one cloud's outputs."""
     from lidar_sim.classes import CLASS_NAMES
 
-    from .detector_node import detector_messages
-    from .messages import probability_cloud
-    from .multihead_node import head_messages
+    from .detector import PROB_NAMES
+    from .messages import detector_messages, head_messages, probability_cloud
 
     msgs = []
     if "detector" in result:
-        dets, props = detector_messages(header, result["detector"])
+        dets, props = detector_messages(header, result["detector"], PROB_NAMES[1:])
         msgs += [(DET_TOPIC, "vision_msgs/msg/Detection3DArray", dets),
                  (PROP_TOPIC, "vision_msgs/msg/Detection3DArray", props)]
     if "heads" in result:
-        for k, (dets, var) in enumerate(head_messages(header, result["heads"])):
+        for k, (dets, var) in enumerate(head_messages(header, result["heads"], PROB_NAMES[1:])):
             msgs += [(f"head_{k}", "vision_msgs/msg/Detection3DArray", dets),
                      (f"head_{k}/variance", "lidar_quality_msgs/msg/BoxVarianceArray", var)]
     if "probs" in result:
@@ -89,7 +89,8 @@ def _messages(header, cloud, result: dict, quantize: bool):
     return msgs
 
 
-def _kitti_lines(det, scores_of="detector") -> list[str]:
+def _kitti_lines(det) -> list[str]:
+    """KITTI result lines of the post-NMS boxes of a DetectorOutput or a HeadOutput."""
     from lidar_sim import classes, kitti
 
     boxes, labels, scores = det.boxes[det.keep], det.labels[det.keep], det.scores[det.keep]
@@ -171,8 +172,6 @@ def _read_bin(path: Path):
 def process_kitti(root: Path, out: Path, perception: Perception, *, split: str = "training",
                   quiet: bool = False) -> int:
     """KITTI result files for ``root/<split>/velodyne/*.bin`` (heads: ``out/head_k/``)."""
-    from lidar_sim import classes, kitti
-
     scans = sorted((Path(root) / split / "velodyne").glob("*.bin"))
     if not scans:
         raise SystemExit(f"no scans in {Path(root) / split / 'velodyne'}")
@@ -186,11 +185,9 @@ def process_kitti(root: Path, out: Path, perception: Perception, *, split: str =
         for k, head in enumerate(res.get("heads", [])):
             d = out / f"head_{k}"
             d.mkdir(exist_ok=True)
-            boxes, labels, scores = head.boxes[head.keep], head.labels[head.keep], head.scores[head.keep]
-            lines = kitti.label_lines(boxes, [classes.kitti_type(int(c)) for c in labels],
-                                      np.zeros(len(boxes)), scores=scores)
-            (d / f"{path.stem}.txt").write_text("".join(line + "\n" for line in lines))
-            np.savez_compressed(d / f"{path.stem}.npz", boxes=boxes, class_probs=head.class_probs[head.keep],
+            (d / f"{path.stem}.txt").write_text("".join(line + "\n" for line in _kitti_lines(head)))
+            np.savez_compressed(d / f"{path.stem}.npz", boxes=head.boxes[head.keep],
+                                class_probs=head.class_probs[head.keep],
                                 variances=head.variances[head.keep])
         if not quiet:
             sys.stderr.write(f"\r{n}/{len(scans)} scans")

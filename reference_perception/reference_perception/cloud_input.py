@@ -17,20 +17,26 @@ class CloudInput:
     finite: np.ndarray              # (N,) bool
     has_intensity: bool
 
+    def finite_points(self):
+        """``(xyz, intensity, ring)`` of the points with finite coordinates."""
+        return finite_points(self.xyz, self.intensity, self.ring, self.finite)
+
+
+def finite_points(xyz, intensity, ring=None, finite=None):
+    """``(xyz, intensity, ring)`` restricted to the points with finite coordinates."""
+    ok = finite_mask(xyz) if finite is None else finite
+    return xyz[ok], intensity[ok], None if ring is None else ring[ok]
+
 
 def read_cloud(msg) -> CloudInput:
     """Decode a PointCloud2 (raises CloudFormatError on a malformed one)."""
-    xyz, inten = xyz_intensity(msg)
-    xyz = np.asarray(xyz, dtype=np.float32).reshape(-1, 3)
-    names = cloud_to_structured(msg).dtype.names or ()
-    ring = None
-    for name in RING_FIELDS:
-        if name in names:
-            ring = np.asarray(cloud_to_structured(msg)[name]).reshape(-1).astype(np.int64)
-            break
+    xyz, inten = xyz_intensity(msg)  # float32 (N, 3) and (N,) or None
+    arr = cloud_to_structured(msg)
+    ring_name = next((n for n in RING_FIELDS if n in (arr.dtype.names or ())), None)
+    ring = None if ring_name is None else np.asarray(arr[ring_name]).reshape(-1).astype(np.int64)
+    if ring is not None and len(ring) != len(xyz):
+        raise CloudFormatError(f"field {ring_name!r} has a count other than 1")
     has_i = inten is not None
-    inten = np.zeros(len(xyz), np.float32) if inten is None else np.asarray(inten, np.float32).reshape(-1)
-    if len(inten) != len(xyz):
-        raise CloudFormatError("intensity and xyz lengths differ")
+    inten = np.zeros(len(xyz), np.float32) if inten is None else inten
     return CloudInput(xyz=xyz, intensity=np.nan_to_num(inten, nan=0.0, posinf=0.0, neginf=0.0),
                       ring=ring, finite=finite_mask(xyz), has_intensity=has_i)

@@ -7,33 +7,17 @@ the proposal it came from (see :mod:`reference_perception.messages`).
 """
 from __future__ import annotations
 
-import time
-
-import numpy as np
-from lidar_quality_core.pointcloud import CloudFormatError
-from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.params import declare
 from lidar_quality_ros.qos import output_qos
 from lidar_quality_ros.runner import run_node
-from lidar_quality_ros.synced_inputs import SyncedInputs
-from sensor_msgs.msg import PointCloud2
 from vision_msgs.msg import Detection3DArray
 
-from .cloud_input import read_cloud
+from .cloud_node import CloudNode
 from .detector import PROB_NAMES, ReferenceDetector
-from .messages import detection_array
+from .messages import detector_messages
 
 
-def detector_messages(header, out):
-    """(detections, proposals) Detection3DArrays of a DetectorOutput."""
-    fg = out.class_probs[:, 1:]
-    dets = detection_array(header, out.boxes[out.keep], fg[out.keep], PROB_NAMES[1:],
-                           ids=out.keep.tolist())
-    props = detection_array(header, out.boxes, fg, PROB_NAMES[1:])
-    return dets, props
-
-
-class DetectorNode(QualityNode):
+class DetectorNode(CloudNode):
     def __init__(self, **kwargs):
         super().__init__("detector_node", **kwargs)
         model_dir = declare(self, "model_dir", "",
@@ -44,28 +28,15 @@ class DetectorNode(QualityNode):
         self.detector = ReferenceDetector(model_dir or None)
         self.pub_det = self.create_publisher(Detection3DArray, "output/detections", output_qos(5))
         self.pub_prop = self.create_publisher(Detection3DArray, "output/proposals", output_qos(5))
-        self.inputs = SyncedInputs(self, [(PointCloud2, "input/points")], self.on_frame,
-                                   diagnostics=self.diag, **self.declare_sync_parameters())
+        self.subscribe_points()
         self.get_logger().info("detector_node ready")
 
-    def on_frame(self, synced) -> None:
-        t0 = time.perf_counter()
-        msg = synced.messages[0]
-        try:
-            cloud = read_cloud(msg)
-        except CloudFormatError as exc:
-            self.warn_input("cloud", f"dropping frame: malformed input/points: {exc}")
-            self.diag.frame_dropped("malformed_cloud")
-            return
-        self.diag.clear("cloud")
-        ok = cloud.finite
-        ring = None if cloud.ring is None else cloud.ring[ok]
-        out = self.detector.detect(cloud.xyz[ok], cloud.intensity[ok], ring)
-        dets, props = detector_messages(msg.header, out)
+    def process(self, header, cloud) -> None:
+        out = self.detector.detect(*cloud.finite_points())
+        dets, props = detector_messages(header, out, PROB_NAMES[1:])
         self.pub_det.publish(dets)
         if self.publish_proposals:
             self.pub_prop.publish(props)
-        self.diag.frame_processed((time.perf_counter() - t0) * 1e3)
 
 
 def main(args=None) -> int:

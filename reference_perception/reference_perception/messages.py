@@ -64,3 +64,23 @@ def probability_cloud(header, xyz: np.ndarray, intensity: np.ndarray, probs: np.
     for k, name in enumerate(class_names):
         cols[probability_field(name)] = p[:, k]
     return create_cloud(header, cols)
+
+
+def detector_messages(header, out, class_names):
+    """(detections, proposals) Detection3DArrays of a DetectorOutput whose class
+    distribution columns are background + ``class_names``."""
+    fg = out.class_probs[:, 1:]
+    dets = detection_array(header, out.boxes[out.keep], fg[out.keep], class_names,
+                           ids=out.keep.tolist())
+    return dets, detection_array(header, out.boxes, fg, class_names)
+
+
+def head_messages(header, out, class_names):
+    """[(Detection3DArray, BoxVarianceArray)] per head of a MultiHeadOutput."""
+    msgs = []
+    for h in out.heads:
+        ids = h.keep.tolist()
+        msgs.append((detection_array(header, h.boxes[h.keep], h.class_probs[h.keep, 1:],
+                                     class_names, ids=ids, variances=h.variances[h.keep]),
+                     box_variance_array(header, h.variances[h.keep], ids=ids)))
+    return msgs

@@ -9,36 +9,19 @@ with the same id come from the same candidate.
 """
 from __future__ import annotations
 
-import time
-
-from lidar_quality_core.pointcloud import CloudFormatError
 from lidar_quality_msgs.msg import BoxVarianceArray
-from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.params import declare
 from lidar_quality_ros.qos import output_qos
 from lidar_quality_ros.runner import run_node
-from lidar_quality_ros.synced_inputs import SyncedInputs
-from sensor_msgs.msg import PointCloud2
 from vision_msgs.msg import Detection3DArray
 
-from .cloud_input import read_cloud
+from .cloud_node import CloudNode
 from .detector import PROB_NAMES
-from .messages import box_variance_array, detection_array
+from .messages import head_messages
 from .multihead import MultiHeadDetector
 
 
-def head_messages(header, out):
-    """[(Detection3DArray, BoxVarianceArray)] per head of a MultiHeadOutput."""
-    msgs = []
-    for h in out.heads:
-        ids = h.keep.tolist()
-        msgs.append((detection_array(header, h.boxes[h.keep], h.class_probs[h.keep, 1:],
-                                     PROB_NAMES[1:], ids=ids, variances=h.variances[h.keep]),
-                     box_variance_array(header, h.variances[h.keep], ids=ids)))
-    return msgs
-
-
-class MultiHeadNode(QualityNode):
+class MultiHeadNode(CloudNode):
     def __init__(self, **kwargs):
         super().__init__("multihead_node", **kwargs)
         model_dir = declare(self, "model_dir", "",
@@ -50,27 +33,14 @@ class MultiHeadNode(QualityNode):
         self.pubs = [(self.create_publisher(Detection3DArray, f"output/head_{i}", output_qos(5)),
                       self.create_publisher(BoxVarianceArray, f"output/head_{i}/variance", output_qos(5)))
                      for i in range(k)]
-        self.inputs = SyncedInputs(self, [(PointCloud2, "input/points")], self.on_frame,
-                                   diagnostics=self.diag, **self.declare_sync_parameters())
+        self.subscribe_points()
         self.get_logger().info(f"multihead_node ready, {k} heads")
 
-    def on_frame(self, synced) -> None:
-        t0 = time.perf_counter()
-        msg = synced.messages[0]
-        try:
-            cloud = read_cloud(msg)
-        except CloudFormatError as exc:
-            self.warn_input("cloud", f"dropping frame: malformed input/points: {exc}")
-            self.diag.frame_dropped("malformed_cloud")
-            return
-        self.diag.clear("cloud")
-        ok = cloud.finite
-        ring = None if cloud.ring is None else cloud.ring[ok]
-        out = self.detector.detect(cloud.xyz[ok], cloud.intensity[ok], ring)
-        for (p_det, p_var), (dets, var) in zip(self.pubs, head_messages(msg.header, out)):
+    def process(self, header, cloud) -> None:
+        out = self.detector.detect(*cloud.finite_points())
+        for (p_det, p_var), (dets, var) in zip(self.pubs, head_messages(header, out, PROB_NAMES[1:])):
             p_det.publish(dets)
             p_var.publish(var)
-        self.diag.frame_processed((time.perf_counter() - t0) * 1e3)
 
 
 def main(args=None) -> int:

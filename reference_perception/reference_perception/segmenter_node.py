@@ -7,24 +7,19 @@ per class (see :mod:`reference_perception.messages`; class names in the order of
 """
 from __future__ import annotations
 
-import time
-
 import numpy as np
-from lidar_quality_core.pointcloud import CloudFormatError
-from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.params import declare
 from lidar_quality_ros.qos import output_qos
 from lidar_quality_ros.runner import run_node
-from lidar_quality_ros.synced_inputs import SyncedInputs
 from lidar_sim.classes import CLASS_NAMES
 from sensor_msgs.msg import PointCloud2
 
-from .cloud_input import read_cloud
+from .cloud_node import CloudNode
 from .messages import probability_cloud
 from .segmenter import DEFAULT_MODEL_PATH, ReferenceSegmenter
 
 
-class SegmenterNode(QualityNode):
+class SegmenterNode(CloudNode):
     def __init__(self, **kwargs):
         super().__init__("segmenter_node", **kwargs)
         path = declare(self, "model_path", "",
@@ -37,28 +32,17 @@ class SegmenterNode(QualityNode):
                 read_only=True)
         self.segmenter = ReferenceSegmenter.load(path or DEFAULT_MODEL_PATH)
         self.pub = self.create_publisher(PointCloud2, "output/points", output_qos(5))
-        self.inputs = SyncedInputs(self, [(PointCloud2, "input/points")], self.on_frame,
-                                   diagnostics=self.diag, **self.declare_sync_parameters())
+        self.subscribe_points()
         self.get_logger().info(f"segmenter_node ready, model {self.segmenter.model_id}")
 
-    def on_frame(self, synced) -> None:
-        t0 = time.perf_counter()
-        msg = synced.messages[0]
-        try:
-            cloud = read_cloud(msg)
-        except CloudFormatError as exc:
-            self.warn_input("cloud", f"dropping frame: malformed input/points: {exc}")
-            self.diag.frame_dropped("malformed_cloud")
-            return
+    def process(self, header, cloud) -> None:
         if not cloud.has_intensity:
             self.warn_input("intensity", "input/points has no intensity field: using 0")
-        self.diag.clear("cloud")
         # non-finite points keep their place and get the uniform distribution
         probs = self.segmenter.predict_proba(cloud.xyz, cloud.intensity, cloud.ring)
         xyz = np.where(cloud.finite[:, None], cloud.xyz, np.nan).astype(np.float32)
-        self.pub.publish(probability_cloud(msg.header, xyz, cloud.intensity, probs, CLASS_NAMES,
+        self.pub.publish(probability_cloud(header, xyz, cloud.intensity, probs, CLASS_NAMES,
                                            quantize=self.quantize))
-        self.diag.frame_processed((time.perf_counter() - t0) * 1e3)
 
 
 def main(args=None) -> int:
