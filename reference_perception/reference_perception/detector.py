@@ -73,8 +73,10 @@ LABEL_MIN_IOU = 0.3
 
 
 def default_model_dir() -> Path:
-    """``<repo>/models/reference`` of this source checkout."""
-    return Path(__file__).resolve().parents[2] / "models" / "reference"
+    """The shipped reference models: ``models_dir() / "reference"``."""
+    from lidar_quality_core.model_store import models_dir
+
+    return models_dir() / "reference"
 
 
 @dataclass(frozen=True)
