@@ -1,0 +1,321 @@
+"""Meta models shared by LMD, LMS and MIMO: estimators, grouped cross validation, greedy
+forward selection, and the online classifier + regressor pair (numpy / sklearn / xgboost,
+no rclpy).
+
+* Estimator kinds (``KINDS``): ``xgboost`` (default of all three methods),
+  ``gradient_boosting`` (scikit-learn's histogram gradient boosting), ``linear``
+  (logistic / ridge regression), ``random_forest``, ``mlp``. Tree models take NaN features
+  as they are (XGBoost and HistGradientBoosting learn a missing-value direction); the others
+  impute the training median first and standardise.
+* Cross validation is always over disjoint groups (sequences or sub-sequences, never random
+  frames: consecutive frames are nearly identical). Classification metrics: accuracy,
+  AUROC, AUPRC, ECE; regression: R^2 and MAE (``lidar_quality_core.metrics``).
+* Greedy forward selection (LMD / LMS papers): start empty, add the feature whose model
+  has the best mean validation AUROC (classification) or R^2 (regression) over the folds;
+  stop at ``max_features`` or when the gain drops below ``min_gain`` (5e-4, the authors').
+* ``MetaModels``: the classifier (confidence) and regressor (predicted IoU) of a node,
+  loaded through ``model_store`` with the node's feature schema. Outputs are clipped to
+  [0, 1]; a row whose features are all NaN (an invalid input the feature code flags) gets
+  NaN, never a silent score.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Sequence
+
+import numpy as np
+
+from . import metrics as M
+from .model_store import LoadedModel, ModelStoreError, load_model, save_model
+
+__all__ = ["KINDS", "TASKS", "make_estimator", "fit_estimator", "predict", "group_folds",
+           "FoldMetrics", "CVResult", "cross_validate", "GreedyResult", "greedy_selection",
+           "MetaModels", "save_pair"]
+
+KINDS = ("xgboost", "gradient_boosting", "linear", "random_forest", "mlp")
+TASKS = ("classification", "regression")
+
+
+def _check(kind: str, task: str) -> None:
+    if kind not in KINDS:
+        raise ValueError(f"unknown meta model kind {kind!r} (known: {', '.join(KINDS)})")
+    if task not in TASKS:
+        raise ValueError(f"task must be one of {TASKS}, got {task!r}")
+
+
+def make_estimator(kind: str, task: str, *, seed: int = 0, n_jobs: int = 1):
+    """An unfitted estimator of ``kind`` for ``task``."""
+    _check(kind, task)
+    cls = task == "classification"
+    if kind == "xgboost":
+        import xgboost as xgb
+
+        common = dict(n_estimators=300, max_depth=4, learning_rate=0.05, subsample=0.8,
+                      colsample_bytree=0.8, min_child_weight=2.0, tree_method="hist",
+                      n_jobs=n_jobs, random_state=seed)
+        return (xgb.XGBClassifier(objective="binary:logistic", eval_metric="logloss", **common)
+                if cls else xgb.XGBRegressor(objective="reg:squarederror", **common))
+    if kind == "gradient_boosting":
+        from sklearn.ensemble import HistGradientBoostingClassifier, HistGradientBoostingRegressor
+
+        est = HistGradientBoostingClassifier if cls else HistGradientBoostingRegressor
+        return est(max_iter=300, learning_rate=0.05, max_leaf_nodes=15, random_state=seed)
+    from sklearn.impute import SimpleImputer
+    from sklearn.pipeline import make_pipeline
+    from sklearn.preprocessing import StandardScaler
+
+    # keep_empty_features: a column that is all NaN in training (e.g. a class never seen)
+    # must keep its place, or the fitted pipeline expects fewer columns than the schema.
+    impute = SimpleImputer(strategy="median", keep_empty_features=True)
+    if kind == "linear":
+        from sklearn.linear_model import LogisticRegression, Ridge
+
+        est = LogisticRegression(max_iter=2000, C=1.0) if cls else Ridge(alpha=1.0)
+        return make_pipeline(impute, StandardScaler(), est)
+    if kind == "random_forest":
+        from sklearn.ensemble import RandomForestClassifier, RandomForestRegressor
+
+        est = RandomForestClassifier if cls else RandomForestRegressor
+        return make_pipeline(impute, est(n_estimators=200, min_samples_leaf=5, n_jobs=n_jobs,
+                                         random_state=seed))
+    from sklearn.neural_network import MLPClassifier, MLPRegressor
+
+    est = MLPClassifier if cls else MLPRegressor
+    return make_pipeline(impute, StandardScaler(),
+                         est(hidden_layer_sizes=(64, 32), early_stopping=True, max_iter=500,
+                             random_state=seed))
+
+
+def _xy(X, y, task):
+    X = np.asarray(X, dtype=np.float64)
+    y = np.asarray(y, dtype=np.float64).reshape(-1)
+    if X.ndim != 2 or X.shape[0] != y.shape[0]:
+        raise ValueError(f"X must be (n, d) with n = len(y); got X {X.shape}, y {y.shape}")
+    if not np.isfinite(y).all():
+        raise ValueError("targets must be finite")
+    if task == "classification":
+        if not np.isin(y, (0.0, 1.0)).all():
+            raise ValueError("classification targets must be 0/1")
+        y = y.astype(np.int64)
+    return X, y
+
+
+def fit_estimator(kind: str, task: str, X, y, *, seed: int = 0, n_jobs: int = 1):
+    """Fit a new ``kind`` estimator on ``(X, y)``; classification ``y`` is 0/1."""
+    X, y = _xy(X, y, task)
+    if task == "classification" and np.unique(y).size < 2:
+        raise ValueError("classification needs both classes in the training data")
+    est = make_estimator(kind, task, seed=seed, n_jobs=n_jobs)
+    est.fit(X, y)
+    return est
+
+
+def predict(est, task: str, X) -> np.ndarray:
+    """P(positive) for classification, the prediction for regression."""
+    X = np.asarray(X, dtype=np.float64)
+    if X.shape[0] == 0:
+        return np.empty(0)
+    if task == "classification":
+        return np.asarray(est.predict_proba(X)[:, 1], dtype=np.float64)
+    return np.asarray(est.predict(X), dtype=np.float64).reshape(-1)
+
+
+def group_folds(groups, n_folds: int = 10, *, seed: int = 0):
+    """``[(train_idx, val_idx), ...]`` with every group in exactly one validation fold.
+
+    Groups are shuffled (seeded) and dealt round-robin; with fewer groups than
+    ``n_folds`` there is one fold per group.
+    """
+    groups = np.asarray(groups)
+    uniq = np.unique(groups)
+    if uniq.size < 2:
+        raise ValueError(f"cross validation needs at least 2 groups, got {uniq.size}")
+    k = min(int(n_folds), uniq.size)
+    if k < 2:
+        raise ValueError(f"n_folds must be >= 2, got {n_folds}")
+    order = np.random.default_rng(seed).permutation(uniq.size)
+    fold_of_group = np.empty(uniq.size, dtype=np.int64)
+    fold_of_group[order] = np.arange(uniq.size) % k
+    fold = fold_of_group[np.searchsorted(uniq, groups)]
+    return [(np.flatnonzero(fold != f), np.flatnonzero(fold == f)) for f in range(k)]
+
+
+def _cls_metrics(y, p) -> dict[str, float]:
+    return {"accuracy": M.accuracy(y, p), "auroc": M.auroc(y, p), "auprc": M.auprc(y, p),
+            "ece": M.ece(y, p)}
+
+
+def _reg_metrics(y, p) -> dict[str, float]:
+    return {"r2": M.r2(y, p), "mae": M.mae(y, p)}
+
+
+def metrics_for(task: str, y, p) -> dict[str, float]:
+    """The metrics of ``task`` for targets ``y`` and predictions ``p`` (clipped to [0, 1])."""
+    p = np.clip(np.asarray(p, dtype=np.float64), 0.0, 1.0)
+    return _cls_metrics(y, p) if task == "classification" else _reg_metrics(y, p)
+
+
+@dataclass
+class FoldMetrics:
+    train: dict[str, float]
+    val: dict[str, float]
+
+
+@dataclass
+class CVResult:
+    """Per-fold train / validation metrics and out-of-fold predictions."""
+
+    task: str
+    kind: str
+    folds: list[FoldMetrics]
+    oof: np.ndarray  # out-of-fold prediction of every sample
+
+    def mean_std(self) -> dict[str, dict[str, tuple[float, float]]]:
+        """``{"train" | "val": {metric: (mean, std)}}`` over the folds (NaN folds skipped)."""
+        out = {}
+        for part in ("train", "val"):
+            keys = getattr(self.folds[0], part).keys()
+            out[part] = {}
+            for k in keys:
+                v = np.array([getattr(f, part)[k] for f in self.folds], dtype=np.float64)
+                v = v[np.isfinite(v)]
+                out[part][k] = ((float(v.mean()), float(v.std())) if v.size
+                                else (float("nan"), float("nan")))
+        return out
+
+
+def cross_validate(X, y, groups, *, task: str, kind: str = "xgboost", n_folds: int = 10,
+                   seed: int = 0, n_jobs: int = 1,
+                   progress: Callable[[int, int], None] | None = None) -> CVResult:
+    """Grouped ``n_folds`` cross validation of a ``kind`` model on ``(X, y)``."""
+    _check(kind, task)
+    X, y = _xy(X, y, task)
+    folds = group_folds(groups, n_folds, seed=seed)
+    oof = np.full(y.shape[0], np.nan)
+    result = []
+    for f, (tr, va) in enumerate(folds):
+        if task == "classification" and np.unique(y[tr]).size < 2:
+            raise ValueError(f"fold {f}: training part holds one class only")
+        est = fit_estimator(kind, task, X[tr], y[tr], seed=seed, n_jobs=n_jobs)
+        p_tr, p_va = predict(est, task, X[tr]), predict(est, task, X[va])
+        oof[va] = p_va
+        result.append(FoldMetrics(metrics_for(task, y[tr], p_tr), metrics_for(task, y[va], p_va)))
+        if progress is not None:
+            progress(f + 1, len(folds))
+    return CVResult(task, kind, result, oof)
+
+
+@dataclass
+class GreedyResult:
+    """Features in the order they were chosen and the validation score after each step."""
+
+    selected: list[str]
+    scores: list[float]
+    metric: str
+    all_features_score: float = float("nan")
+    trace: list[dict[str, float]] = field(default_factory=list)
+
+
+def _val_score(X, y, folds, task, kind, seed, n_jobs) -> float:
+    vals = []
+    for tr, va in folds:
+        est = fit_estimator(kind, task, X[tr], y[tr], seed=seed, n_jobs=n_jobs)
+        p = np.clip(predict(est, task, X[va]), 0.0, 1.0)
+        vals.append(M.auroc(y[va], p) if task == "classification" else M.r2(y[va], p))
+    v = np.asarray(vals)
+    v = v[np.isfinite(v)]
+    return float(v.mean()) if v.size else float("nan")
+
+
+def greedy_selection(X, y, names: Sequence[str], groups, *, task: str, kind: str = "linear",
+                     n_folds: int = 3, max_features: int = 10, min_gain: float = 5e-4,
+                     seed: int = 0, n_jobs: int = 1,
+                     progress: Callable[[int, int], None] | None = None) -> GreedyResult:
+    """Greedy forward feature selection by grouped cross-validated AUROC / R^2."""
+    _check(kind, task)
+    X, y = _xy(X, y, task)
+    names = list(names)
+    if len(names) != X.shape[1]:
+        raise ValueError(f"{len(names)} names for {X.shape[1]} columns")
+    folds = group_folds(groups, n_folds, seed=seed)
+    chosen: list[int] = []
+    scores: list[float] = []
+    trace: list[dict[str, float]] = []
+    best_prev = -np.inf
+    steps = min(max_features, X.shape[1])
+    for step in range(steps):
+        cand = [j for j in range(X.shape[1]) if j not in chosen]
+        s = {names[j]: _val_score(X[:, chosen + [j]], y, folds, task, kind, seed, n_jobs)
+             for j in cand}
+        trace.append(s)
+        j_best = max(cand, key=lambda j: -np.inf if not np.isfinite(s[names[j]]) else s[names[j]])
+        gain = s[names[j_best]] - best_prev
+        if scores and not gain >= min_gain:
+            break
+        chosen.append(j_best)
+        scores.append(s[names[j_best]])
+        best_prev = s[names[j_best]]
+        if progress is not None:
+            progress(step + 1, steps)
+    full = _val_score(X, y, folds, task, kind, seed, n_jobs)
+    return GreedyResult([names[j] for j in chosen], scores,
+                        "auroc" if task == "classification" else "r2", full, trace)
+
+
+class MetaModels:
+    """Meta classifier (confidence) and meta regressor (predicted IoU) of one node.
+
+    Both are loaded and verified through the model store against ``feature_names``;
+    any problem raises ``ModelStoreError`` naming the file and the reason.
+    """
+
+    def __init__(self, classifier_path, regressor_path, feature_names: Sequence[str]):
+        self.feature_names = tuple(feature_names)
+        self.classifier: LoadedModel = load_model(classifier_path,
+                                                  expected_features=self.feature_names,
+                                                  expected_task="classification")
+        self.regressor: LoadedModel = load_model(regressor_path,
+                                                 expected_features=self.feature_names,
+                                                 expected_task="regression")
+        if self.regressor.target_names:
+            raise ModelStoreError(f"{regressor_path}: expected a single-output regressor, "
+                                  f"got outputs {self.regressor.target_names}")
+
+    @property
+    def confidence_model_id(self) -> str:
+        return self.classifier.model_id
+
+    @property
+    def iou_model_id(self) -> str:
+        return self.regressor.model_id
+
+    def predict(self, X) -> tuple[np.ndarray, np.ndarray]:
+        """``(confidence, predicted_iou)``, both in [0, 1]; NaN for all-NaN rows."""
+        X = np.asarray(X, dtype=np.float64)
+        if X.ndim != 2 or X.shape[1] != len(self.feature_names):
+            raise ValueError(f"features must be (n, {len(self.feature_names)}), got {X.shape}")
+        conf = np.full(X.shape[0], np.nan)
+        iou = np.full(X.shape[0], np.nan)
+        ok = ~np.isnan(X).all(axis=1) if X.shape[1] else np.ones(X.shape[0], bool)
+        # +-inf would reach the trees as a valid split value; treat it as missing.
+        Xo = np.where(np.isinf(X[ok]), np.nan, X[ok])
+        if Xo.shape[0]:
+            conf[ok] = np.clip(self.classifier.predict_confidence(Xo), 0.0, 1.0)
+            iou[ok] = np.clip(self.regressor.predict_value(Xo), 0.0, 1.0)
+        return conf, iou
+
+
+def save_pair(out_dir, prefix: str, classifier, regressor, feature_names: Sequence[str], *,
+              training_data: dict[str, Any] | None = None,
+              classifier_metrics: dict[str, Any] | None = None,
+              regressor_metrics: dict[str, Any] | None = None) -> tuple[Path, Path]:
+    """Save ``<prefix>_classifier.joblib`` and ``<prefix>_regressor.joblib`` with manifests."""
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    cpath, rpath = out / f"{prefix}_classifier.joblib", out / f"{prefix}_regressor.joblib"
+    save_model(classifier, cpath, feature_names=list(feature_names), task="classification",
+               training_data=training_data, metrics=classifier_metrics)
+    save_model(regressor, rpath, feature_names=list(feature_names), task="regression",
+               training_data=training_data, metrics=regressor_metrics)
+    return cpath, rpath

@@ -1,0 +1,77 @@
+"""Meta model helpers: grouped folds, cross validation, greedy selection, the model pair."""
+import numpy as np
+import pytest
+from lidar_quality_core import meta_model as mm
+from lidar_quality_core.model_store import ModelStoreError
+
+
+def _data(n=600, seed=0):
+    rng = np.random.default_rng(seed)
+    X = rng.normal(size=(n, 5))
+    iou = 1 / (1 + np.exp(-(1.5 * X[:, 0] - X[:, 2])))  # depends on features 0 and 2 only
+    y = (iou + 0.1 * rng.normal(size=n) > 0.5).astype(int)
+    groups = np.repeat(np.arange(12), n // 12)
+    return X, y, iou, groups
+
+
+def test_group_folds_partition_groups():
+    groups = np.repeat(np.arange(7), 5)
+    folds = mm.group_folds(groups, 3, seed=1)
+    assert len(folds) == 3
+    seen = np.concatenate([va for _, va in folds])
+    assert np.array_equal(np.sort(seen), np.arange(groups.size))
+    for tr, va in folds:
+        assert not set(groups[tr]) & set(groups[va])
+    assert len(mm.group_folds(groups[:10], 10)) == 2  # fewer groups than folds
+    with pytest.raises(ValueError):
+        mm.group_folds(np.zeros(5), 3)
+
+
+@pytest.mark.parametrize("kind", mm.KINDS)
+def test_every_kind_learns_both_tasks(kind):
+    X, y, iou, groups = _data()
+    X[::17, 1] = np.nan  # missing values must be accepted by every kind
+    cv = mm.cross_validate(X, y, groups, task="classification", kind=kind, n_folds=3)
+    assert cv.mean_std()["val"]["auroc"][0] > 0.8
+    assert np.isfinite(cv.oof).all()
+    cvr = mm.cross_validate(X, iou, groups, task="regression", kind=kind, n_folds=3)
+    assert cvr.mean_std()["val"]["r2"][0] > 0.5
+
+
+def test_classification_needs_binary_targets():
+    X, y, iou, groups = _data()
+    with pytest.raises(ValueError, match="0/1"):
+        mm.fit_estimator("linear", "classification", X, iou)
+    with pytest.raises(ValueError, match="kind"):
+        mm.make_estimator("svm", "classification")
+
+
+def test_greedy_selection_finds_the_informative_features():
+    X, y, iou, groups = _data(900)
+    g = mm.greedy_selection(X, iou, [f"f{i}" for i in range(5)], groups, task="regression",
+                            kind="linear", max_features=4)
+    assert g.selected[:2] == ["f0", "f2"]
+    assert g.metric == "r2" and np.all(np.diff(g.scores) >= 5e-4)
+    assert len(g.selected) <= 3  # the noise features add less than the gain threshold
+
+
+def test_meta_models_pair(tmp_path):
+    X, y, iou, groups = _data()
+    names = [f"f{i}" for i in range(5)]
+    clf = mm.fit_estimator("xgboost", "classification", X, y)
+    reg = mm.fit_estimator("xgboost", "regression", X, iou)
+    cpath, rpath = mm.save_pair(tmp_path, "toy", clf, reg, names)
+    pair = mm.MetaModels(cpath, rpath, names)
+    Xq = X[:4].copy()
+    Xq[1] = np.nan  # an invalid row: no score at all
+    Xq[2, 3] = np.inf  # a single bad value is treated as missing
+    conf, pred = pair.predict(Xq)
+    assert np.isnan(conf[1]) and np.isnan(pred[1])
+    ok = [0, 2, 3]
+    assert np.all((conf[ok] >= 0) & (conf[ok] <= 1)) and np.all((pred[ok] >= 0) & (pred[ok] <= 1))
+    np.testing.assert_allclose(conf[0], clf.predict_proba(X[:1])[0, 1], rtol=1e-6)
+    assert pair.confidence_model_id.startswith("toy_classifier-")
+    with pytest.raises(ModelStoreError, match="schema"):
+        mm.MetaModels(cpath, rpath, names[::-1])
+    with pytest.raises(ModelStoreError, match="task"):
+        mm.MetaModels(rpath, cpath, names)

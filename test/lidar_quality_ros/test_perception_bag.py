@@ -1,0 +1,49 @@
+"""Perception bag frames: grouping by header stamp, heads, missing topics."""
+import numpy as np
+import pytest
+from lidar_quality_core.boxes import arrays_to_detections
+from lidar_quality_core.pointcloud import create_xyz_cloud
+from lidar_quality_ros.bag_io import BagWriter
+from lidar_quality_ros.perception_bag import head_count, perception_frames
+from std_msgs.msg import Header
+
+DET = "vision_msgs/msg/Detection3DArray"
+PC = "sensor_msgs/msg/PointCloud2"
+
+
+def _write(path, n=5, shuffle_log=False):
+    with BagWriter(path) as w:
+        for i in range(n):
+            h = Header(frame_id="lidar")
+            h.stamp.sec, h.stamp.nanosec = 100 + i // 10, (i % 10) * 100_000_000
+            t = h.stamp.sec * 10**9 + h.stamp.nanosec
+            cloud = create_xyz_cloud(h, np.full((3, 3), i, np.float32))
+            boxes = np.array([[i, 0, 0, 4, 2, 1.5, 0.0]])
+            dets = arrays_to_detections(h, boxes, ["car"], [0.5], ids=[f"d{i}"])
+            # outputs logged later than their scan, as a recorder does
+            w.write("/lidar/points", PC, t, cloud)
+            w.write("/perception/detections", DET, t + 250_000_000, dets)
+            w.write("/perception/head_0", DET, t + 260_000_000, dets)
+            w.write("/perception/head_1", DET, t + 270_000_000, dets)
+
+
+def test_frames_grouped_by_stamp(tmp_path):
+    _write(tmp_path / "b", n=25)
+    assert head_count(tmp_path / "b") == 2
+    # outputs lag 2.5 scans: a window of 3 newer stamps is enough
+    frames = list(perception_frames(tmp_path / "b", heads=None, window=3))
+    assert [f.index for f in frames] == list(range(25))
+    for i, f in enumerate(frames):
+        assert f.detections.detections[0].id == f"d{i}"
+        assert f.points.header.stamp == f.detections.header.stamp
+        assert [h.detections[0].id for h in f.heads] == [f"d{i}", f"d{i}"]
+        assert f.head_variances == [None, None] and f.proposals is None
+    assert np.diff([f.stamp_ns for f in frames]).min() > 0
+
+
+def test_missing_required_topic(tmp_path):
+    _write(tmp_path / "b", n=1)
+    with pytest.raises(ValueError, match="no topic"):
+        list(perception_frames(tmp_path / "b", topics={"points": "/other"}))
+    with pytest.raises(ValueError, match="unknown"):
+        list(perception_frames(tmp_path / "b", want=("nope",)))
