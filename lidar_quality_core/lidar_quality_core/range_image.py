@@ -221,19 +221,13 @@ def project(xyz, cfg: RangeImageConfig, ring=None) -> Projection:
         rng = np.sqrt(x * x + y * y + z * z)
     finite = np.isfinite(rng)
 
-    with np.errstate(invalid="ignore", divide="ignore"):
-        az = np.arctan2(y, x)
-        u = 0.5 * (1.0 - az / np.pi) * C
-    col = np.zeros(n, dtype=np.int64)
-    col[finite] = np.floor(u[finite]).astype(np.int64) % C  # az = -pi lands on C -> 0
-
-    row = np.full(n, -1, dtype=np.int64)
+    row = np.full(n, -1, dtype=np.int32)
     if ring is not None:
         ring = np.asarray(ring).reshape(-1)
         if len(ring) != n:
             raise ValueError(f"ring has {len(ring)} entries, xyz {n}")
         r_ok = finite & (ring >= 0) & (ring < R)
-        row[r_ok] = ring[r_ok].astype(np.int64)
+        row[r_ok] = ring[r_ok]
     else:
         with np.errstate(invalid="ignore", divide="ignore"):
             el = np.degrees(np.arcsin(np.clip(z / np.where(rng > 0, rng, 1.0), -1.0, 1.0)))
@@ -242,29 +236,40 @@ def project(xyz, cfg: RangeImageConfig, ring=None) -> Projection:
         r_idx = np.searchsorted(neg, -el[finite], side="right") - 1
         r_idx[(r_idx < 0) | (r_idx >= R)] = -1
         row[finite] = r_idx
-    valid = finite & (row >= 0)
+    valid = row >= 0
     out_of_fov = finite & ~valid
-    row[~valid] = -1
-    col[~valid] = -1
-    pixel = np.where(valid, row * C + col, -1)
 
-    index = np.full(R * C, -1, dtype=np.int64)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        u = np.arctan2(y, x)
+        u *= -0.5 * C / np.pi
+        u += 0.5 * C
+    col = np.full(n, -1, dtype=np.int32)
+    # az = -pi lands on C -> 0
+    col[valid] = np.floor(u[valid]).astype(np.int32) % np.int32(C)
     vidx = np.flatnonzero(valid)
-    vpix = pixel[vidx]
-    index[vpix] = vidx  # right for every pixel with one point; shared pixels below
-    counts = np.bincount(vpix, minlength=R * C)
-    shared = counts[vpix] > 1
-    if shared.any():
+    pixel = np.full(n, -1, dtype=np.int64)
+    vpix = row[vidx].astype(np.int64) * C + col[vidx]
+    pixel[vidx] = vpix
+
+    # Write every point to its pixel and read back: a point that does not find itself
+    # lost its pixel to another one, so only those pixels need the nearest-point rule.
+    index = np.full(R * C, -1, dtype=np.int32)
+    index[vpix] = vidx
+    lost = index[vpix] != vidx
+    if lost.any():
+        contested = np.zeros(R * C, dtype=bool)
+        contested[vpix[lost]] = True
+        shared = contested[vpix]
         sub, p = vidx[shared], vpix[shared]
-        order = np.lexsort((sub, rng[sub], p))  # by pixel, then range, then index
+        # stable sorts: by pixel, then range, then index (sub is increasing)
+        order = np.argsort(rng[sub], kind="stable")
+        order = order[np.argsort(p[order], kind="stable")]
         ps = p[order]
         first = np.r_[True, ps[1:] != ps[:-1]]
         index[ps[first]] = sub[order][first]
-    return Projection(cfg=cfg, row=row.astype(np.int32), col=col.astype(np.int32),
-                      pixel=pixel.astype(np.int64),
+    return Projection(cfg=cfg, row=row, col=col, pixel=pixel,
                       range=np.where(finite, rng, np.nan).astype(np.float32),
-                      valid=valid, out_of_fov=out_of_fov,
-                      index=index.reshape(R, C).astype(np.int32))
+                      valid=valid, out_of_fov=out_of_fov, index=index.reshape(R, C))
 
 
 # -- neighbourhoods -------------------------------------------------------------------
