@@ -16,4 +16,5 @@ setup(
     maintainer_email="lidar-quality@example.com",
     description="rclpy helpers shared by the lidar quality nodes.",
     license="Apache-2.0",
+    entry_points={"console_scripts": ["bag_player = lidar_quality_ros.bag_player:main"]},
 )

@@ -59,8 +59,11 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
         spinner = threading.Thread(target=_spin, args=(executor, stop, crashed), name="executor",
                                    daemon=True)
         spinner.start()
-        while not stop.wait(0.5):
-            pass
+        # A node that ends by itself (the bag player) sets its ``finished`` event.
+        finished = getattr(node, "finished", None)
+        while not stop.wait(0.5 if finished is None else 0.05):
+            if finished is not None and finished.is_set():
+                break
         if crashed:
             rclpy.logging.get_logger(node.get_name()).fatal(
                 f"executor stopped by an error: {type(crashed[0]).__name__}: {crashed[0]}")
