@@ -1,0 +1,219 @@
+"""``mimo-train``: the LiDAR-MIMO meta classifier (confidence) and regressor (predicted IoU).
+
+    mimo-train --data data/perception/meta_train --out models/mimo --cache data/cache/mimo
+
+Two pairs, both over the merged clusters of the perception bags (``dataset.py``, the node's
+own features): ``mimo`` on the cluster statistics (``MimoSettings().feature_names()``) and
+``mimo_points`` with the LMD own-box point features of the merged box as well
+(``use_points=True``). Classifier target: BEV IoU with the best ground-truth box of the
+detection's class >= 0.5; regressor target: that IoU. Estimator: ``meta_model`` kind
+(XGBoost by default). Before the final fit on all data, grouped cross validation over the
+sequences (``--folds``) gives the metrics written into the manifests and ``MODEL_CARD.md``
+(``mimo-eval --model-card`` adds the held-out evaluation to the card).
+"""
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from lidar_quality_core import meta_model
+from lidar_quality_core import metrics as qm
+
+from .dataset import TP_IOU, MimoDataset, load_bags
+
+__all__ = ["PREFIXES", "train_pair", "train", "model_card", "main", "CARD_BEGIN", "CARD_END"]
+
+PREFIXES = {False: "mimo", True: "mimo_points"}
+CARD_BEGIN, CARD_END = "<!-- mimo-eval:begin -->", "<!-- mimo-eval:end -->"
+
+
+def _cv_summary(cv: meta_model.CVResult) -> dict:
+    ms = cv.mean_std()
+    return {"cv_folds": len(cv.folds), "cv_val": {k: list(v) for k, v in ms["val"].items()},
+            "cv_train": {k: list(v) for k, v in ms["train"].items()}}
+
+
+def train_pair(ds: MimoDataset, use_points: bool, out_dir, *, kind: str = "xgboost",
+               folds: int = 6, seed: int = 0, progress=None) -> dict:
+    """Cross-validate and fit one classifier + regressor pair; save it under ``out_dir``.
+    Returns the metrics and paths."""
+    X, names = ds.features(use_points)
+    y_cls, y_iou = ds.tp.astype(float), ds.m_iou_class
+    groups = ds.group
+    res = {"prefix": PREFIXES[use_points], "features": list(names), "n": int(len(X)),
+           "positive_rate": float(y_cls.mean()) if len(X) else float("nan")}
+    if len(np.unique(groups)) >= 2 and folds >= 2:
+        cv_c = meta_model.cross_validate(X, y_cls, groups, task="classification", kind=kind,
+                                         n_folds=folds, seed=seed, progress=progress)
+        cv_r = meta_model.cross_validate(X, y_iou, groups, task="regression", kind=kind,
+                                         n_folds=folds, seed=seed, progress=progress)
+        res["classifier_cv"], res["regressor_cv"] = _cv_summary(cv_c), _cv_summary(cv_r)
+    clf = meta_model.fit_estimator(kind, "classification", X, y_cls, seed=seed)
+    reg = meta_model.fit_estimator(kind, "regression", X, y_iou, seed=seed)
+    training = {"sources": [s["path"] for s in ds.info.get("sources", [])],
+                "groups": ds.groups, "frames": int(ds.n_frames), "rows": int(len(X)),
+                "classifier_target": f"BEV IoU with the best GT box of the detection's class "
+                                     f">= {TP_IOU}", "regressor_target": "that IoU",
+                "kind": kind, "seed": seed, "merge_settings": ds.info.get("settings")}
+    cpath, rpath = meta_model.save_pair(out_dir, res["prefix"], clf, reg, names,
+                                        training_data=training,
+                                        classifier_metrics=res.get("classifier_cv"),
+                                        regressor_metrics=res.get("regressor_cv"))
+    res["paths"] = [str(cpath), str(rpath)]
+    return res
+
+
+def _baseline(ds: MimoDataset) -> dict:
+    """The merged score as a confidence / IoU predictor (no model): reference figures."""
+    y = ds.tp.astype(float)
+    return {"auroc": qm.auroc(y, ds.m_score), "ece": qm.ece(y, np.clip(ds.m_score, 0, 1)),
+            "iou_r2": qm.r2(ds.m_iou_class, ds.m_score)}
+
+
+def train(data: Sequence, out_dir, *, cache_dir=None, kind: str = "xgboost", folds: int = 6,
+          seed: int = 0, quiet: bool = False, command: str = "") -> dict:
+    """Load the bags, train both pairs, write the model card. Returns the summary."""
+    t0 = time.monotonic()
+    ds = load_bags(data, cache_dir=cache_dir, progress=not quiet)
+    if len(ds) == 0:
+        raise SystemExit("no merged detections in the training data")
+    out = Path(out_dir)
+    summary = {"data": ds.summary(), "baseline_merged_score": _baseline(ds), "pairs": [],
+               "heads": (ds.info.get("settings") or {}).get("num_heads")}
+    for use_points in (False, True):
+        def bar(i, n, label=PREFIXES[use_points]):
+            if not quiet:
+                sys.stderr.write(f"\r{label}: cross validation fold {i}/{n}  ")
+                if i == n:
+                    sys.stderr.write("\n")
+        summary["pairs"].append(train_pair(ds, use_points, out, kind=kind, folds=folds,
+                                           seed=seed, progress=bar))
+    summary["seconds"] = time.monotonic() - t0
+    (out / "MODEL_CARD.md").write_text(model_card(summary, command))
+    return summary
+
+
+def _fmt_ms(d: dict | None, key: str) -> str:
+    if not d or key not in d.get("cv_val", {}):
+        return "–"
+    m, s = d["cv_val"][key]
+    return f"{m:.3f} ± {s:.3f}"
+
+
+def model_card(summary: dict, command: str = "") -> str:
+    """``MODEL_CARD.md`` of the trained pairs (the held-out section is mimo-eval's)."""
+    from lidar_quality_core.report_plots import markdown_table
+
+    from .pipeline import POINT_FEATURES, STAT_FEATURES
+
+    d = summary["data"]
+    base = summary["baseline_merged_score"]
+    rows = []
+    for p in summary["pairs"]:
+        c, r = p.get("classifier_cv"), p.get("regressor_cv")
+        rows.append([p["prefix"], len(p["features"]), _fmt_ms(c, "auroc"), _fmt_ms(c, "ece"),
+                     _fmt_ms(c, "auprc"), _fmt_ms(r, "r2"), _fmt_ms(r, "mae")])
+    folds = next((p["classifier_cv"]["cv_folds"] for p in summary["pairs"]
+                  if "classifier_cv" in p), 0)
+    lines = [
+        "# LiDAR-MIMO meta models (`models/mimo`)",
+        "",
+        "Meta classifier (confidence = P(the merged detection is a true positive)) and meta "
+        "regressor (predicted BEV IoU with the best ground-truth box of its class) of "
+        "`mimo_node`, over the merged clusters of the reference multi-head detector "
+        "(`mimo_ros.pipeline`: consensus DBSCAN on 1 - BEV IoU, mean merge, SE / AE / MI, "
+        "ETV / ATV and per-parameter variances, merged score, class, range).",
+        "",
+        "| files | features | used when |",
+        "|---|---|---|",
+        f"| `mimo_classifier.joblib`, `mimo_regressor.joblib` (+ `.manifest.json`) | the "
+        f"{len(STAT_FEATURES)} cluster statistics | default (`use_points: false`) |",
+        f"| `mimo_points_classifier.joblib`, `mimo_points_regressor.joblib` (+ manifests) | "
+        f"the same + {len(POINT_FEATURES)} LMD own-box point features of the merged box | "
+        "`use_points: true` |",
+        "",
+        "## Training data",
+        "",
+        f"Simulated perception bags (`lidar_sim` scenes, reference perception with "
+        f"{summary.get('heads')} heads): {d['groups']} sequences, {d['frames']} frames, "
+        f"{d['merged']} merged detections of which {d['merged_tp']} are TPs "
+        f"(BEV IoU >= {TP_IOU} with a ground-truth box of their class), {d['gt_boxes']} "
+        "ground-truth boxes. Sources and settings are in the manifests (`training_data`).",
+        "",
+        "## Models",
+        "",
+        "XGBoost (`lidar_quality_core.meta_model`, kind `xgboost`: 300 trees, depth 4, "
+        "learning rate 0.05), fitted on all training sequences. Missing values (e.g. point "
+        "features without a cloud) go the learnt default way.",
+        "",
+        f"Grouped cross validation over the sequences ({folds} folds, mean ± std of the "
+        "validation folds):",
+        "",
+        markdown_table(["pair", "features", "AUROC", "ECE", "AUPRC", "IoU R²", "IoU MAE"],
+                       rows).rstrip(),
+        "",
+        f"For reference, the merged score itself on the training data: AUROC "
+        f"{base['auroc']:.3f}, ECE {base['ece']:.3f}, as IoU predictor R² {base['iou_r2']:.3f}.",
+        "",
+        "## Limits",
+        "",
+        "Trained on simulated scans and the reference multi-head detector only: another "
+        "detector, sensor or scene distribution needs retraining (`mimo-train` on its own "
+        "perception bags). The confidence is calibrated for the merge settings in the "
+        "manifests (2 heads, consensus voting, eps 0.5); other settings change the clusters.",
+        "",
+        "## Reproduce",
+        "",
+        "```bash",
+        command or "mimo-train --data data/perception/meta_train --out models/mimo",
+        "```",
+        "",
+        "## Held-out evaluation",
+        "",
+        CARD_BEGIN,
+        "Not evaluated yet: run `mimo-eval ... --model-card models/mimo/MODEL_CARD.md`.",
+        CARD_END,
+        "",
+    ]
+    return "\n".join(lines)
+
+
+def add_data_arguments(p: argparse.ArgumentParser, default_data: str) -> None:
+    p.add_argument("--data", nargs="+", default=[default_data],
+                   help="perception bags or directories of bags (one sequence per bag)")
+    p.add_argument("--cache", default="data/cache/mimo",
+                   help="dataset cache directory ('' = no cache)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="mimo-train", description=__doc__.split("\n\n")[0])
+    add_data_arguments(p, "data/perception/meta_train")
+    p.add_argument("--out", default="models/mimo", help="model directory")
+    p.add_argument("--kind", default="xgboost", choices=meta_model.KINDS)
+    p.add_argument("--folds", type=int, default=6, help="grouped CV folds (0: no CV)")
+    p.add_argument("--seed", type=int, default=0)
+    a = p.parse_args(argv)
+    command = "mimo-train " + " ".join(shlex.quote(x) for x in (argv if argv is not None
+                                                               else sys.argv[1:]))
+    s = train(a.data, a.out, cache_dir=a.cache or None, kind=a.kind, folds=a.folds, seed=a.seed,
+              quiet=a.quiet, command=command)
+    d = s["data"]
+    print(f"mimo-train: {d['groups']} sequences, {d['frames']} frames, {d['merged']} merged "
+          f"detections ({d['merged_tp']} TP) in {s['seconds']:.0f} s")
+    for pr in s["pairs"]:
+        c, r = pr.get("classifier_cv"), pr.get("regressor_cv")
+        print(f"  {pr['prefix']:12s} AUROC {_fmt_ms(c, 'auroc')}  ECE {_fmt_ms(c, 'ece')}  "
+              f"IoU R² {_fmt_ms(r, 'r2')}  -> {', '.join(pr['paths'])}")
+    print(f"  wrote {Path(a.out) / 'MODEL_CARD.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
