@@ -1,8 +1,9 @@
 """Launch lms_node with its parameter file (Jazzy: ros2 launch lms_ros lms.launch.py).
 
 Arguments: params_file (default: this package's config/lms_node.yaml), namespace,
-use_sim_time. Remap the relative input/output topics with the launch file's remappings
-or by namespacing.
+use_sim_time. Remap the relative input/output topics (input/points, with
+separate_probabilities also input/probabilities; output/points, output/segments,
+output/markers) with the launch file's remappings or by namespacing.
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument

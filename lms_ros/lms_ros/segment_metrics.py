@@ -466,7 +466,9 @@ def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=Non
                                                                  order="C")
     if len(other_fill):
         nf = len(other_fill)
-        Bf = csc_matrix((np.ones(nf), rid_fill[other_fill], cols[:nf + 1]),
+        # its own column pointer: nf exceeds N in sparse clouds (more filled pixels than
+        # points), where cols[:nf + 1] would be too short (found by fuzzing)
+        Bf = csc_matrix((np.ones(nf), rid_fill[other_fill], np.arange(nf + 1, dtype=np.int64)),
                         shape=(nb + 1, nf))
         sf = src_fill[other_fill]
         Gf = G[sf]

@@ -1,0 +1,343 @@
+"""lms_ros.pipeline: decoding (float32 / uint8 probabilities, one or two clouds, ring
+layouts), probability checks, frame metrics and the node's frame work with real models."""
+import numpy as np
+import pytest
+from lidar_quality_core import meta_model
+from lidar_quality_core.pointcloud import CloudFormatError, create_cloud, read_fields
+from lms_ros.pipeline import (CLASS_NAMES, NO_LABEL, LmsProcessor, LmsSettings, decode,
+                              default_model_paths, frame_metrics)
+from lms_ros.segment_metrics import compute_segments, to_points
+from lms_scans import COLS, cloud, frame_cloud, scans, train_models
+from lms_scans import frame_probs as noisy_probs
+from lms_scans import settings as _settings
+from std_msgs.msg import Header
+
+N_CLASSES = len(CLASS_NAMES)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return scans(3, 2)
+
+
+# -- settings -------------------------------------------------------------------------------
+
+
+def test_settings_schema_and_class_map():
+    from lidar_sim.classes import CLASS_NAMES as SIM
+    from reference_perception.messages import probability_field
+
+    s = LmsSettings()
+    assert s.class_names == SIM
+    assert s.field_names() == tuple(probability_field(c) for c in SIM)
+    assert len(s.metric_names()) == 86 + 2 * N_CLASSES
+    assert "P_traffic-sign" in s.metric_names()
+    cfg = s.range_config()
+    assert cfg.shape == (64, 2048) and cfg.fov_up_deg == 3.0 and cfg.fov_down_deg == -25.0
+    s.validate()
+    c, r = default_model_paths()
+    assert c.name == "lms_classifier.joblib" and r.name == "lms_regressor.joblib"
+    assert c.parent.name == "lms"
+
+
+@pytest.mark.parametrize("kw, word", [
+    (dict(class_names=()), "class_names"),
+    (dict(class_names=("a-b", "a_b")), "duplicate"),
+    (dict(class_names=("road", "x")), "clash"),
+    (dict(channels=0), "channels"),
+    (dict(width=1.5), "width"),
+    (dict(fov_up_deg=-30.0), "fov"),
+    (dict(min_segment_points=0), "min_segment_points"),
+    (dict(sum_tolerance=-0.1), "sum_tolerance"),
+    (dict(ring_field=""), "ring_field"),
+])
+def test_settings_validation(kw, word):
+    with pytest.raises(ValueError, match=word):
+        LmsSettings(**kw).validate()
+
+
+# -- decoding ---------------------------------------------------------------------------------
+
+
+def test_decode_matches_compute_segments(frames):
+    f = frames[0]
+    p = noisy_probs(f, 1)
+    s = _settings()
+    inp = decode(frame_cloud(f, p), s)
+    assert inp.n_renormalized == 0 and inp.n_invalid_points == 0 and not inp.quantized
+    np.testing.assert_array_equal(inp.xyz, f.xyz.astype(np.float32))
+    np.testing.assert_array_equal(inp.probs, p)
+    np.testing.assert_array_equal(inp.ring, f.ring)
+    res = frame_metrics(inp, s)
+    ref = compute_segments(f.xyz, p, s.range_config(), ring=f.ring, intensity=f.intensity,
+                           min_points=10, class_names=CLASS_NAMES)
+    assert res.names == s.metric_names()
+    np.testing.assert_array_equal(res.point_segment, ref.point_segment)
+    np.testing.assert_allclose(res.features, ref.features, rtol=1e-12, atol=1e-12)
+    assert 20 < len(res.kept_ids) < res.n_segments       # the scan has real segments
+
+
+def test_uint8_equals_float32_on_representable_probabilities(frames):
+    """Probabilities that are multiples of 1/255: the uint8 cloud decodes to exactly the
+    float32 one, hence the same segments and metrics."""
+    f = frames[0]
+    q = np.rint(noisy_probs(f, 2) * 255)
+    # make every row sum to exactly 255 (fix the largest entry)
+    top = q.argmax(axis=1)
+    q[np.arange(len(q)), top] += 255 - q.sum(axis=1)
+    assert (q >= 0).all()
+    s = _settings()
+    a = decode(frame_cloud(f, (q / 255).astype(np.float32)), s)
+    b = decode(frame_cloud(f, q.astype(np.uint8)), s)
+    assert b.quantized and b.n_renormalized == 0
+    np.testing.assert_array_equal(a.probs, b.probs)
+    ra, rb = frame_metrics(a, s), frame_metrics(b, s)
+    np.testing.assert_array_equal(ra.point_segment, rb.point_segment)
+    np.testing.assert_array_equal(ra.features, rb.features)
+
+
+def test_uint8_softmax_gives_the_same_segments_up_to_quantization(frames):
+    f = frames[1]
+    p = noisy_probs(f, 3)
+    s = _settings()
+    a, b = decode(frame_cloud(f, p), s), decode(frame_cloud(f, p, quantize=True), s)
+    # rounding errors of 14 values stay inside the widened tolerance: nothing flagged
+    assert b.n_renormalized == 0
+    assert np.abs(b.probs - p).max() <= 0.5 / 255 + 1e-6
+    ra, rb = frame_metrics(a, s), frame_metrics(b, s)
+    srt = np.sort(p, axis=1)
+    clear = srt[:, -1] - srt[:, -2] > 1.0 / 255          # argmax cannot flip there
+    np.testing.assert_array_equal(ra.point_class[clear], rb.point_class[clear])
+    assert (ra.point_class != rb.point_class).mean() < 0.005
+    assert abs(ra.n_segments - rb.n_segments) <= 0.02 * ra.n_segments + 2
+    # a segment of the float32 cloud keeps (almost) all its points in one uint8 segment
+    both = (ra.point_segment >= 0) & (rb.point_segment >= 0)
+    pairs = np.unique(np.stack([ra.point_segment[both], rb.point_segment[both]]), axis=1)
+    assert pairs.shape[1] <= ra.n_segments * 1.05 + 2
+
+
+def test_renormalization_is_counted_and_applied(frames):
+    f = frames[0]
+    p = noisy_probs(f, 4)
+    scaled = p.copy()
+    rows = np.arange(0, len(p), 7)
+    scaled[rows] *= 1.5
+    scaled[rows[::2]] *= 0.3                              # some sum to 0.45
+    s = _settings()
+    inp = decode(frame_cloud(f, scaled), s)
+    assert inp.n_renormalized == len(rows)
+    np.testing.assert_allclose(inp.probs.sum(axis=1), 1.0, atol=1e-5)
+    np.testing.assert_allclose(inp.probs, p, atol=1e-6)
+    # within the tolerance: left as is
+    inp2 = decode(frame_cloud(f, p * 1.01), s)
+    assert inp2.n_renormalized == 0
+    np.testing.assert_array_equal(inp2.probs, (p * 1.01).astype(np.float32))
+    assert decode(frame_cloud(f, p * 1.01), _settings(sum_tolerance=0.005)).n_renormalized \
+        == len(p)
+
+
+def test_bad_probabilities_and_nan_points(frames):
+    f = frames[0]
+    p = noisy_probs(f, 5)
+    xyz = f.xyz.astype(np.float32).copy()
+    p[10, 3] = np.nan
+    p[11, 2] = -0.2
+    p[12] = 0.0
+    xyz[20] = np.nan
+    xyz[21, 2] = np.inf
+    s = _settings()
+    inp = decode(cloud(xyz, p, intensity=f.intensity, ring=f.ring), s)
+    assert inp.n_bad_probabilities == 3
+    assert inp.n_invalid_points == 5
+    assert not inp.valid[[10, 11, 12, 20, 21]].any() and inp.valid.sum() == len(xyz) - 5
+    res = frame_metrics(inp, s)
+    assert (res.point_segment[[10, 11, 12, 20, 21]] == -1).all()
+    assert np.isfinite(res.features).all()
+    # the other points are segmented as without the bad ones' pixels
+    good = cloud(np.where(inp.valid[:, None], xyz, np.nan), np.where(inp.valid[:, None], p, 0.5),
+                 intensity=f.intensity, ring=f.ring)
+    ref = frame_metrics(decode(good, s), s)
+    np.testing.assert_array_equal(res.features, ref.features)
+
+
+def test_missing_probability_field_is_named(frames):
+    f = frames[0]
+    p = noisy_probs(f, 6)
+    names = [c for c in CLASS_NAMES if c != "traffic-sign"]
+    msg = cloud(f.xyz, np.delete(p, CLASS_NAMES.index("traffic-sign"), axis=1), names=names)
+    with pytest.raises(CloudFormatError, match="traffic_sign") as e:
+        decode(msg, _settings())
+    assert "input/points" in str(e.value)
+    with pytest.raises(CloudFormatError, match="'z'"):
+        decode(create_cloud(None, {"x": f.xyz[:, 0], "y": f.xyz[:, 1]}), _settings())
+
+
+@pytest.mark.parametrize("bad", [np.int16, "count2"])
+def test_probability_field_types_are_checked(frames, bad):
+    f = frames[0]
+    p = noisy_probs(f, 6)
+    msg = cloud(f.xyz, p)
+    if bad == "count2":
+        extra = {"car": np.stack([p[:, 10], p[:, 10]], axis=1)}
+    else:
+        extra = {"car": (p[:, 10] * 100).astype(bad)}
+    names = [c for c in CLASS_NAMES if c != "car"]
+    msg = cloud(f.xyz, np.delete(p, CLASS_NAMES.index("car"), axis=1), names=names,
+                extra=extra)
+    with pytest.raises(CloudFormatError, match="'car'"):
+        decode(msg, _settings())
+
+
+def test_two_clouds(frames):
+    f = frames[0]
+    p = noisy_probs(f, 7)
+    s = _settings()
+    one = decode(frame_cloud(f, p), s)
+    points = cloud(f.xyz, intensity=f.intensity, ring=f.ring)
+    probs = cloud(f.xyz, p, quantize=False)
+    two = decode(points, s, probabilities_msg=probs)
+    np.testing.assert_array_equal(one.probs, two.probs)
+    np.testing.assert_array_equal(one.ring, two.ring)
+    np.testing.assert_array_equal(frame_metrics(one, s).features, frame_metrics(two, s).features)
+    # a probabilities cloud of bare fields (no xyz) and uint8 is fine too
+    bare = create_cloud(None, {c.replace("-", "_"): np.rint(p[:, k] * 255).astype(np.uint8)
+                               for k, c in enumerate(CLASS_NAMES)})
+    assert decode(points, s, probabilities_msg=bare).quantized
+    with pytest.raises(CloudFormatError, match=r"input/probabilities has \d+ points"):
+        decode(points, s, probabilities_msg=cloud(f.xyz[:-1], p[:-1]))
+    with pytest.raises(CloudFormatError, match="input/probabilities"):
+        decode(points, s, probabilities_msg=points)          # no probability fields
+
+
+def test_ring_flip_and_elevation_rows(frames):
+    f = frames[0]
+    p = noisy_probs(f, 8)
+    # lidar_sim: ring 0 = top. A Velodyne-style cloud numbers the same beams bottom-up.
+    velodyne_ring = 63 - f.ring.astype(np.int64)
+    msg = cloud(f.xyz, p, intensity=f.intensity, ring=velodyne_ring)
+    s = LmsSettings(width=COLS)                               # ring_zero_top=False
+    inp = decode(msg, s)
+    np.testing.assert_array_equal(inp.ring, f.ring)
+    top = decode(frame_cloud(f, p), _settings())
+    np.testing.assert_array_equal(frame_metrics(inp, s).features,
+                                  frame_metrics(top, _settings()).features)
+    # rings beyond the image are out of view, not errors
+    too_high = velodyne_ring + 32
+    res = frame_metrics(decode(cloud(f.xyz, p, ring=too_high), s), s)
+    assert (res.point_segment[too_high > 63] == -1).all()
+    assert (res.projection.row[too_high <= 63] == f.ring[too_high <= 63] - 32).all()
+    # without ring (use_ring off): rows from elevation bins of the fov
+    s2 = LmsSettings(width=COLS, use_ring=False, fov_up_deg=2.5, fov_down_deg=-25.5)
+    inp2 = decode(msg, s2)
+    assert inp2.ring is None
+    el = np.degrees(np.arcsin(f.xyz[:, 2] / np.linalg.norm(f.xyz, axis=1)))
+    want = np.floor((2.5 - el) / (28.0 / 64)).astype(int)
+    row = frame_metrics(inp2, s2).projection.row
+    np.testing.assert_array_equal(row, want)
+
+
+def test_organized_cloud_and_empty_cloud():
+    s = _settings()
+    h = Header(frame_id="l")
+    rng = np.random.default_rng(0)
+    xyz = rng.normal(0, 10, (4, 50, 3)).astype(np.float32)
+    p = rng.dirichlet(np.ones(N_CLASSES), (4, 50)).astype(np.float32)
+    arr = np.zeros((4, 50), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")]
+                   + [(c.replace("-", "_"), "f4") for c in CLASS_NAMES])
+    for k, n in enumerate("xyz"):
+        arr[n] = xyz[..., k]
+    for k, c in enumerate(CLASS_NAMES):
+        arr[c.replace("-", "_")] = p[..., k]
+    inp = decode(create_cloud(h, arr), s)
+    assert inp.shape == (4, 50) and len(inp) == 200 and inp.intensity is None
+    np.testing.assert_array_equal(inp.xyz, xyz.reshape(-1, 3))
+    empty = decode(cloud(np.zeros((0, 3), np.float32), np.zeros((0, N_CLASSES), np.float32)), s)
+    assert len(empty) == 0 and empty.n_invalid_points == 0
+    res = frame_metrics(empty, s)
+    assert res.n_segments == 0 and res.features.shape == (0, 86 + 2 * N_CLASSES)
+
+
+# -- the node's frame work with real models ----------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def models(frames, tmp_path_factory):
+    cpath, rpath = train_models(tmp_path_factory.mktemp("lms_models"), frames)
+    return meta_model.MetaModels(cpath, rpath, _settings().metric_names())
+
+
+def test_processor_outputs(frames, models):
+    f = frames[1]
+    s = _settings()
+    p = noisy_probs(f, 9)
+    xyz = f.xyz.astype(np.float32).copy()
+    xyz[5] = np.nan
+    msg = cloud(xyz, p, intensity=f.intensity, ring=f.ring, sec=42)
+    out = LmsProcessor(s, models).process(msg, markers=True)
+    res = out.result
+    conf, iou = models.predict(res.features)
+    np.testing.assert_array_equal(out.confidence[res.kept_ids], conf)
+    np.testing.assert_array_equal(out.predicted_iou[res.kept_ids], iou)
+    assert np.isnan(out.confidence[~res.kept]).all()
+    # output/points: same points, same order, the per-point values of their segment
+    pc = out.points
+    assert pc.header == msg.header and pc.width == len(xyz) and pc.height == 1
+    assert [fl.name for fl in pc.fields] == ["x", "y", "z", "intensity", "label", "segment",
+                                             "confidence", "predicted_iou"]
+    got = read_fields(pc, ["x", "y", "z", "intensity"])
+    np.testing.assert_array_equal(got, np.c_[xyz, f.intensity.astype(np.float32)])
+    seg = read_fields(pc, ["segment"], dtype=np.int64)[:, 0]
+    np.testing.assert_array_equal(seg, res.point_segment)
+    assert seg[5] == -1
+    lab = read_fields(pc, ["label"], dtype=np.int64)[:, 0]
+    np.testing.assert_array_equal(lab, p.argmax(axis=1))
+    pconf = read_fields(pc, ["confidence", "predicted_iou"])
+    want = to_points(res, np.stack([conf, iou], axis=1).astype(np.float32))
+    np.testing.assert_array_equal(pconf, want)
+    in_kept = (seg >= 0) & np.isin(seg, res.kept_ids)
+    assert np.isfinite(pconf[in_kept]).all() and np.isnan(pconf[~in_kept]).all()
+    # output/segments: every segment in id order
+    sq = out.segments
+    assert sq.header == msg.header and len(sq.segments) == res.n_segments
+    assert sq.confidence_model_id == models.confidence_model_id
+    for i in (0, int(res.kept_ids[0]), res.n_segments - 1):
+        q = sq.segments[i]
+        assert q.segment_id == i and q.class_index == res.segment_class[i]
+        assert q.class_name == CLASS_NAMES[q.class_index]
+        assert q.point_count == np.count_nonzero(seg == i)
+        assert q.projected_point_count == res.size_projected[i]
+        np.testing.assert_equal(q.confidence, out.confidence[i])
+    # markers: one sphere per kept segment at its centroid
+    m = out.markers.markers[-1]
+    assert len(m.points) == len(res.kept_ids)
+    k0 = int(res.kept_ids[0])
+    c0 = xyz[seg == k0].astype(np.float64).mean(axis=0)
+    np.testing.assert_allclose([m.points[0].x, m.points[0].y, m.points[0].z], c0, rtol=1e-6)
+    assert out.issues == {}
+
+
+def test_processor_bad_probabilities_and_issues(frames, models):
+    f = frames[0]
+    s = _settings()
+    p = noisy_probs(f, 10)
+    p[:100] *= 2.0
+    p[200] = np.nan
+    out = LmsProcessor(s, models).process(frame_cloud(f, p))
+    assert set(out.issues) == {"probabilities", "bad_probabilities"}
+    assert "100 of" in out.issues["probabilities"]
+    lab = read_fields(out.points, ["label"], dtype=np.int64)[:, 0]
+    assert lab[200] == NO_LABEL and (lab[:100] == p[:100].argmax(axis=1)).all()
+    conf = read_fields(out.points, ["confidence"])[:, 0]
+    assert np.isnan(conf[200])
+
+
+def test_processor_refuses_other_class_map(models):
+    with pytest.raises(ValueError, match="another class map"):
+        LmsProcessor(_settings(class_names=CLASS_NAMES[:-1]), models)
+
+
+def test_processor_empty_cloud(models):
+    out = LmsProcessor(_settings(), models).process(
+        cloud(np.zeros((0, 3), np.float32), np.zeros((0, N_CLASSES), np.float32)))
+    assert out.points.width == 0 and len(out.segments.segments) == 0
+    assert set(out.issues) == {"intensity"}          # the cloud has no intensity field
