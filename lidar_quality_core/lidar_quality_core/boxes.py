@@ -64,25 +64,73 @@ def detections_to_arrays(detections) -> DetectionArrays:
     score, a size <= 0, a zero quaternion.
     """
     dets = list(getattr(detections, "detections", detections))
-    n = len(dets)
-    raw = np.empty((n, 11))
-    scores = np.full(n, np.nan)
-    labels, ids, reasons = [""] * n, [""] * n, [""] * n
-    hyps: dict[str, np.ndarray] = {}
+    rows, ids = [], []
+    hyp_det, hyp_cls, hyp_sc = [], [], []
     for i, det in enumerate(dets):
-        c, o, s = det.bbox.center.position, det.bbox.center.orientation, det.bbox.size
-        raw[i] = (c.x, c.y, c.z, s.x, s.y, s.z, o.x, o.y, o.z, o.w, 0.0)
-        ids[i] = det.id
-        best = -np.inf
+        bb = det.bbox
+        c, o, s = bb.center.position, bb.center.orientation, bb.size
+        rows.append((c.x, c.y, c.z, s.x, s.y, s.z, o.x, o.y, o.z, o.w))
+        ids.append(det.id)
         for r in det.results:
-            cls, sc = r.hypothesis.class_id, r.hypothesis.score
-            hyps.setdefault(cls, np.full(n, np.nan))[i] = sc
-            if sc > best or not labels[i] and best == -np.inf:
-                best, labels[i] = sc, cls
-        if det.results:
-            scores[i] = best
-        else:
-            reasons[i] = "no hypothesis in results"
+            h = r.hypothesis
+            hyp_det.append(i)
+            hyp_cls.append(h.class_id)
+            hyp_sc.append(h.score)
+    raw = np.array(rows, dtype=np.float64).reshape(len(dets), 10)
+    return arrays_from_fields(raw, ids, hyp_det, hyp_cls, hyp_sc)
+
+
+def arrays_from_fields(raw: np.ndarray, ids: list[str], hyp_det, hyp_cls, hyp_score
+                       ) -> DetectionArrays:
+    """DetectionArrays from fields already read out of the detections (of messages, or of
+    serialized bytes: ``detection_cdr``), so that both share one set of rules.
+
+    ``raw`` (N, 10): centre x y z, size x y z, quaternion x y z w; ``ids`` (N); one entry
+    per hypothesis, in message order: ``hyp_det`` (its detection), ``hyp_cls`` (class
+    names, or ``(codes, names)`` with names in order of first appearance), ``hyp_score``.
+    The top hypothesis of a detection is its first one, replaced by any later one scoring
+    strictly higher (a NaN first score stays; a later NaN never wins).
+    """
+    n = len(raw)
+    det = np.asarray(hyp_det, dtype=np.int64).reshape(-1)
+    sc = np.asarray(hyp_score, dtype=np.float64).reshape(-1)
+    n_hyp = len(det)
+    if isinstance(hyp_cls, tuple):
+        codes, names = np.asarray(hyp_cls[0], dtype=np.int64).reshape(-1), list(hyp_cls[1])
+    else:
+        lut: dict[str, int] = {}
+        codes = np.fromiter((lut.setdefault(c, len(lut)) for c in hyp_cls), np.int64,
+                            count=n_hyp)
+        names = list(lut)
+    hyps: dict[str, np.ndarray] = {}
+    for k, name in enumerate(names):
+        m = codes == k
+        col = np.full(n, np.nan)
+        col[det[m]] = sc[m]  # a class given twice in one detection: the last one
+        hyps[name] = col
+    has = np.bincount(det, minlength=n)[:n] > 0 if n_hyp else np.zeros(n, dtype=bool)
+    top = np.zeros(n, dtype=np.int64)
+    if n_hyp:
+        first = np.zeros(n, dtype=np.int64)
+        first[det[::-1]] = np.arange(n_hyp - 1, -1, -1)
+        # highest score, earliest on ties; NaN sorts last
+        order = np.lexsort((np.arange(n_hyp), -np.where(np.isnan(sc), -np.inf, sc), det))
+        top[has] = order[np.searchsorted(det[order], np.flatnonzero(has))]
+        nan_first = has & np.isnan(sc[first])
+        top[nan_first] = first[nan_first]
+    scores = np.where(has, sc[top] if n_hyp else np.nan, np.nan)
+    top_codes = codes[top].tolist() if n_hyp else [0] * n
+    labels = [names[c] if h else "" for c, h in zip(top_codes, has.tolist())]
+    for i in np.unique(det[~np.isfinite(sc)]).tolist():
+        # a non-finite hypothesis score (rare, invalid anyway): the message reading rule one
+        # by one,
+        # e.g. an empty class_id scoring -inf yields to the next hypothesis
+        best, label = -np.inf, ""
+        for j in np.flatnonzero(det == i).tolist():
+            if sc[j] > best or not label and best == -np.inf:
+                best, label = sc[j], names[codes[j]]
+        scores[i], labels[i] = best, label
+    reasons = ["" if h else "no hypothesis in results" for h in has.tolist()]
     quat = raw[:, 6:10]
     rpy = quaternion_to_rpy(quat) if n else np.zeros((0, 3))
     boxes = np.concatenate([raw[:, :6], rpy[:, 2:3]], axis=1)
@@ -94,16 +142,24 @@ def detections_to_arrays(detections) -> DetectionArrays:
         (~np.isfinite(quat).all(axis=1), "non-finite orientation"),
         (finite & (np.linalg.norm(np.where(np.isfinite(quat), quat, 0), axis=1) < 1e-9),
          "zero quaternion"),
-        (~np.isfinite(scores) & np.array([bool(d.results) for d in dets], dtype=bool),
-         "non-finite score"),
+        (~np.isfinite(scores) & has, "non-finite score"),
     ]
     for bad, why in checks:
         for i in np.flatnonzero(bad):
             reasons[i] = f"{reasons[i]}; {why}" if reasons[i] else why
     valid = np.array([not r for r in reasons], dtype=bool)
-    return DetectionArrays(boxes=boxes, scores=scores, labels=labels, ids=ids,
+    return DetectionArrays(boxes=boxes, scores=scores, labels=labels, ids=list(ids),
                            roll_pitch=rpy[:, :2], valid=valid, reasons=reasons,
                            class_scores=hyps)
+
+
+def _bare(msg_cls):
+    """An instance of a generated message class with no field set yet (the caller sets
+    every field): skips ``__init__``, which builds a default of every sub-message only
+    for it to be replaced."""
+    obj = msg_cls.__new__(msg_cls)
+    obj._check_fields = False
+    return obj
 
 
 def arrays_to_detections(header, boxes: np.ndarray, labels, scores, *, ids=None,
@@ -111,29 +167,41 @@ def arrays_to_detections(header, boxes: np.ndarray, labels, scores, *, ids=None,
                          covariance_diagonal: np.ndarray | None = None):
     """Build a Detection3DArray (one result per detection, or one per finite entry of
     ``class_scores``, highest score first); ``covariance_diagonal`` (N, 6) fills the pose
-    covariance diagonal (x, y, z, roll, pitch, yaw)."""
-    from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesisWithPose
+    covariance diagonal (x, y, z, roll, pitch, yaw). The hypotheses of a detection share
+    one PoseWithCovariance object (equal values; its pose is the box centre)."""
+    from geometry_msgs.msg import PoseWithCovariance
+    from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesis, ObjectHypothesisWithPose
 
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
-    quat = yaw_to_quaternion(boxes[:, 6])
+    n = len(boxes)
+    quat = yaw_to_quaternion(boxes[:, 6]).tolist()
+    if class_scores:
+        names = list(class_scores)
+        S = np.column_stack([np.asarray(class_scores[c], np.float64).reshape(-1)[:n]
+                             for c in names])
+        order = np.argsort(-np.where(np.isfinite(S), S, -np.inf), axis=1, kind="stable")
+        nfin = np.isfinite(S).sum(axis=1).tolist()
+        items = [[(names[k], S[i, k]) for k in order[i, :nfin[i]].tolist()] for i in range(n)]
+    else:
+        items = [[(str(labels[i]), float(scores[i]))] for i in range(n)]
+    cov = np.zeros((n, 36))
+    if covariance_diagonal is not None:
+        cov[:, ::7] = np.asarray(covariance_diagonal, np.float64).reshape(n, 6)
     out = Detection3DArray(header=header)
     for i, b in enumerate(boxes.tolist()):
         det = Detection3D(header=header, id=str(ids[i]) if ids is not None else str(i))
         p, o, s = det.bbox.center.position, det.bbox.center.orientation, det.bbox.size
         p.x, p.y, p.z = b[0], b[1], b[2]
         s.x, s.y, s.z = b[3], b[4], b[5]
-        o.x, o.y, o.z, o.w = quat[i].tolist()
-        items = (sorted(((c, float(v[i])) for c, v in class_scores.items() if np.isfinite(v[i])),
-                        key=lambda cs: -cs[1])
-                 if class_scores else [(str(labels[i]), float(scores[i]))])
-        for cls, sc in items:
-            hyp = ObjectHypothesisWithPose()
-            hyp.hypothesis.class_id, hyp.hypothesis.score = cls, sc
-            hyp.pose.pose = det.bbox.center
-            if covariance_diagonal is not None:
-                cov = np.zeros((6, 6))
-                np.fill_diagonal(cov, covariance_diagonal[i])
-                hyp.pose.covariance = cov.reshape(-1)
-            det.results.append(hyp)
+        o.x, o.y, o.z, o.w = quat[i]
+        pose = _bare(PoseWithCovariance)
+        pose.pose, pose.covariance = det.bbox.center, cov[i]
+        results = []
+        for cls, sc in items[i]:
+            hyp = _bare(ObjectHypothesisWithPose)
+            hyp.hypothesis = ObjectHypothesis(class_id=cls, score=float(sc))
+            hyp.pose = pose
+            results.append(hyp)
+        det.results = results
         out.detections.append(det)
     return out

@@ -29,7 +29,8 @@ from vision_msgs.msg import Detection3DArray
 from .testing import RosHarness
 
 NODES = {  # node -> (package, input topics, output topic, output type)
-    "lmd": ("lmd_ros", ["input/points", "input/detections"], "output/detections", Detection3DArray),
+    "lmd": ("lmd_ros", ["input/points", "input/detections", "input/proposals"], "output/detections",
+            Detection3DArray),
     "lms": ("lms_ros", ["input/points"], "output/points", PointCloud2),
     "mimo": ("mimo_ros", ["input/head_0", "input/head_1"], None, None),
 }
@@ -49,6 +50,9 @@ def _start_node(ros: RosHarness, name: str, log_dir: Path) -> subprocess.Popen:
 def run(out_dir: Path, frames: int = 50, rate_hz: float = 10.0, n_points: int = 120_000) -> dict:
     out_dir.mkdir(parents=True, exist_ok=True)
     frame_data = [synthetic_frame(n_points=n_points, seed=s) for s in range(min(frames, 10))]
+    # lmd_node (threshold mode) also takes the pre-NMS proposals; built once per frame
+    proposals = [arrays_to_detections(Header(), f.proposals, [CLASS_NAMES[c] for c in f.prop_classes],
+                                      f.prop_scores) for f in frame_data]
     with RosHarness() as ros:
         print(f"demo: ROS domain {ros.domain_id}, loopback only; starting lmd_node, lms_node, mimo_node")
         procs = {n: _start_node(ros, n, out_dir) for n in NODES}
@@ -82,7 +86,10 @@ def run(out_dir: Path, frames: int = 50, rate_hz: float = 10.0, n_points: int = 
             time.sleep(max(0.0, t_next - time.monotonic()))
             t_next += period
             sent_at[i] = time.monotonic()
+            props = proposals[i % len(frame_data)]
+            props.header = h
             pubs["/lmd/input/detections"].publish(dets)
+            pubs["/lmd/input/proposals"].publish(props)
             pubs["/lmd/input/points"].publish(cloud)
             pubs["/lms/input/points"].publish(cloud)
             pubs["/mimo/input/head_0"].publish(heads[0])

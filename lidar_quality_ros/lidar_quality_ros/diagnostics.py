@@ -70,6 +70,15 @@ class NodeDiagnostics:
         with self._lock:
             self._warnings.pop(key, None)
 
+    def counts(self) -> dict[str, int]:
+        """Cheap snapshot of the node's own counters: ``frames_out``,
+        ``received.<topic>`` and ``dropped.<reason>`` (no sources, no percentiles)."""
+        with self._lock:
+            out = {"frames_out": self.frames_out}
+            out.update((f"received.{t}", n) for t, n in self._received.items())
+            out.update((f"dropped.{r}", n) for r, n in self._dropped.items())
+        return out
+
     @property
     def dropped(self) -> int:
         """Frames dropped by the node plus input messages lost upstream (synchroniser)."""

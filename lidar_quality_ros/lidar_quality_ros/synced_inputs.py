@@ -79,13 +79,26 @@ class OrderedWorker:
 
 class SyncedInputs:
     """Subscribe to ``topics`` (list of ``(msg_type, topic)``) and call ``callback(set)``
-    for every matched set, on the worker thread, in matching order."""
+    for every matched set, on the worker thread, in matching order.
+
+    ``on_arrival(index, stamp_ns)``, if given, hears of every message before it is
+    matched; with :meth:`inject` a node can stand in for an input that stopped (e.g.
+    ``None`` messages, so the other inputs' sets still complete).
+
+    ``raw_decoders`` maps topics to ``fn(bytes) -> obj with .header.stamp``: those are
+    subscribed with ``raw=True`` and decoded on arrival (messages rclpy would deserialize
+    far too slowly, e.g. ``detection_cdr.decode_detection_array``); bytes that do not
+    decode are dropped and counted (``undecodable_input``)."""
 
     def __init__(self, node, topics: Sequence[tuple[type, str]],
                  callback: Callable[[SyncedSet], None], *, mode: str = "exact",
                  slop_s: float = 0.0, queue_size: int = 10, processing_queue_size: int = 2,
-                 qos=SENSOR_QOS, diagnostics=None):
+                 qos=SENSOR_QOS, diagnostics=None,
+                 on_arrival: Callable[[int, int], None] | None = None,
+                 raw_decoders: dict[str, Callable[[bytes], object]] | None = None):
         self.topics = [t for _, t in topics]
+        self._decoders = dict(raw_decoders or {})
+        self._on_arrival = on_arrival
         self.sync = StampSynchronizer(len(topics), mode=mode,
                                       slop_ns=int(round(slop_s * 1e9)) if mode == "approximate" else 0,
                                       queue_size=queue_size)
@@ -97,7 +110,7 @@ class SyncedInputs:
         self._group = ReentrantCallbackGroup()
         self.subscriptions = [
             node.create_subscription(msg_type, topic, self._make_cb(i), qos,
-                                     callback_group=self._group)
+                                     callback_group=self._group, raw=topic in self._decoders)
             for i, (msg_type, topic) in enumerate(topics)
         ]
         if diagnostics is not None:
@@ -105,14 +118,41 @@ class SyncedInputs:
 
     def _make_cb(self, index: int):
         topic = self.topics[index]
+        decode = self._decoders.get(topic)
 
         def on_message(msg) -> None:
             if self._diag is not None:
                 self._diag.input_received(topic)
+            if decode is not None:
+                try:
+                    msg = decode(msg)
+                except Exception as exc:  # noqa: BLE001 - bad bytes cost this message only
+                    self._logger.warn(f"dropping a message on {topic}: cannot decode it: {exc}",
+                                      throttle_duration_sec=5.0)
+                    if self._diag is not None:
+                        self._diag.frame_dropped("undecodable_input")
+                    return
             stamp = msg.header.stamp
-            for matched in self.sync.add(index, stamp_to_ns(stamp.sec, stamp.nanosec), msg):
-                self.worker.submit(matched)
+            try:
+                stamp_ns = stamp_to_ns(stamp.sec, stamp.nanosec)
+            except ValueError as exc:
+                # nanosec >= 1e9 passes the wire (uint32): it must cost this message, not
+                # the node (an exception here stops the executor; found by fuzzing).
+                self._logger.warn(f"dropping a message on {topic}: {exc}",
+                                  throttle_duration_sec=5.0)
+                if self._diag is not None:
+                    self._diag.frame_dropped("invalid_stamp")
+                return
+            if self._on_arrival is not None:
+                self._on_arrival(index, stamp_ns)
+            self.inject(index, stamp_ns, msg)
         return on_message
+
+    def inject(self, index: int, stamp_ns: int, msg) -> None:
+        """Queue ``msg`` for input ``index`` at ``stamp_ns`` as if it had arrived (not
+        counted as received in the diagnostics) and process the set it completes."""
+        for matched in self.sync.add(index, stamp_ns, msg):
+            self.worker.submit(matched)
 
     def _overrun(self, n: int) -> None:
         self._logger.warn(f"processing falls behind the input: dropped {n} waiting frame(s)",

@@ -2,7 +2,9 @@
 
 Arguments: params_file (default: this package's config/lmd_node.yaml), namespace,
 use_sim_time. Remap the relative input/output topics with the launch file's remappings
-or by namespacing.
+or by namespacing. proposal_mode and the model files (classifier_path / regressor_path,
+empty: the shipped models/lmd/lmd_<proposal_mode>_*) are set in the params file; the
+node refuses to start without valid models.
 """
 from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument

@@ -107,3 +107,33 @@ def test_yaw_from_any_quaternion(r, p, y, scale, flip):
 @given(y=angle)
 def test_yaw_quaternion_inverse(y):
     assert math.isclose(quaternion_to_rpy(yaw_to_quaternion(np.array([y])))[0, 2], y, abs_tol=1e-9)
+
+
+def _reference_top(hyps):
+    """The message reading rule, hypothesis by hypothesis."""
+    best, label = -math.inf, ""
+    for cls, sc in hyps:
+        if sc > best or not label and best == -math.inf:
+            best, label = sc, cls
+    return label, (best if hyps else math.nan)
+
+
+@settings(max_examples=300, deadline=None)
+@given(st.lists(st.lists(st.tuples(st.sampled_from(["", "car", "truck", "ped"]),
+                                   st.sampled_from([math.nan, -math.inf, math.inf, 0.0, 0.2,
+                                                    0.5, 0.5, 0.9, -1.0])),
+                         max_size=5), max_size=6))
+def test_arrays_from_fields_top_hypothesis_and_columns(per_det):
+    from lidar_quality_core.boxes import arrays_from_fields
+    raw = np.tile([0, 0, 0, 1, 1, 1, 0, 0, 0, 1.0], (len(per_det), 1))
+    flat = [(i, c, s) for i, hs in enumerate(per_det) for c, s in hs]
+    arr = arrays_from_fields(raw, [str(i) for i in range(len(per_det))],
+                             [f[0] for f in flat], [f[1] for f in flat], [f[2] for f in flat])
+    for i, hs in enumerate(per_det):
+        label, score = _reference_top(hs)
+        assert arr.labels[i] == label
+        np.testing.assert_array_equal(arr.scores[i], score)
+        assert (arr.reasons[i] == "no hypothesis in results") == (not hs)
+        for c in {c for c, _ in hs}:
+            np.testing.assert_array_equal(arr.class_scores[c][i], [s for k, s in hs if k == c][-1])
+    assert list(arr.class_scores) == list(dict.fromkeys(f[1] for f in flat))

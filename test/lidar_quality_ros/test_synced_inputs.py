@@ -115,3 +115,29 @@ def test_frames_processed_in_input_order(ros):
     assert wait_until(lambda: len(node.seen) == 20)
     assert node.seen == list(range(1, 21))
     assert node.diag.dropped == 0
+
+
+class _Hooked(Node):
+    """Reports arrivals; stands in for input b with None (what mimo_node does for a head
+    that stopped)."""
+
+    def __init__(self, **kwargs):
+        super().__init__("hooked_node", **kwargs)
+        self.sets, self.arrivals = [], []
+        self.inputs = SyncedInputs(self, [(PointStamped, "a"), (PointStamped, "b")],
+                                   self.sets.append, on_arrival=self._arrived)
+
+    def _arrived(self, index, stamp_ns):
+        self.arrivals.append((index, stamp_ns))
+        if index == 0:
+            self.inputs.inject(1, stamp_ns, None)
+
+
+def test_arrival_hook_and_inject(ros):
+    node = ros.start(_Hooked)
+    pa = ros.sensor_publisher(PointStamped, "a")
+    assert ros.wait_for_match(pa)
+    pa.publish(_h(4, 7))
+    assert wait_until(lambda: len(node.sets) == 1)
+    assert node.arrivals == [(0, 4_000_000_007)]
+    assert node.sets[0].messages[0].header.frame_id == "4.7" and node.sets[0].messages[1] is None

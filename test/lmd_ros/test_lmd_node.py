@@ -1,93 +1,333 @@
-"""lmd_node shell: parameters, sensor QoS inputs, pass-through, bad input, clean shutdown."""
+"""lmd_node: parameters, sensor QoS inputs, annotated outputs equal to the model store's
+models on the feature module's output, ordering / ids, filtering, exact mode, jittered
+stamps, bad input, model refusal, the installed executable.
+
+The models are real: XGBoost fitted once per session on synthetic frames
+(``lmd_frames.train_models``)."""
+import math
+import signal
+import subprocess
+import time
+
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-from lidar_quality_core.boxes import arrays_to_detections
-from lidar_quality_core.pointcloud import create_xyz_cloud
+from lidar_quality_core import synthetic
+from lidar_quality_core.meta_model import MetaModels
+from lidar_quality_msgs.msg import DetectionQualityArray
+from lmd_frames import frame_messages, header, train_models
 from lmd_ros.lmd_node import LmdNode
+from lmd_ros.pipeline import LmdSettings, frame_features
 from node_shell_checks import (assert_declared_with_descriptions, assert_sensor_qos,
-                               assert_yaml_matches_declared, diag_values,
+                               assert_yaml_matches_declared, diag_values, executable,
                                run_executable_and_signal, wait_until)
-from rclpy.qos import ReliabilityPolicy
 from sensor_msgs.msg import PointCloud2
-from std_msgs.msg import Header
 from vision_msgs.msg import Detection3DArray
+from visualization_msgs.msg import MarkerArray
+
+PARAMS = ("proposal_mode", "classifier_path", "regressor_path", "iou_threshold",
+          "proposal_score_threshold", "nms_iou_threshold", "nms_score_threshold",
+          "class_names", "min_confidence", "publish_markers", "sync_mode", "sync_slop",
+          "sync_queue_size", "processing_queue_size", "diagnostics_period")
 
 
-def _frame(sec, n_boxes=3, seed=0):
-    rng = np.random.default_rng(seed)
-    h = Header(frame_id="lidar_top")
-    h.stamp.sec = sec
-    cloud = create_xyz_cloud(h, rng.normal(size=(2000, 3)).astype(np.float32),
-                             rng.random(2000).astype(np.float32))
-    boxes = np.column_stack([rng.normal(size=(n_boxes, 3)), np.full((n_boxes, 3), 2.0),
-                             rng.uniform(-3, 3, n_boxes)])
-    dets = arrays_to_detections(h, boxes, ["car"] * n_boxes, rng.random(n_boxes),
-                                ids=[f"det{sec}_{i}" for i in range(n_boxes)])
-    return cloud, dets
+@pytest.fixture(scope="session")
+def models_dir(tmp_path_factory):
+    """``<dir>/lmd/lmd_<mode>_{classifier,regressor}.joblib`` for the three modes (the
+    layout of models_dir(), so that LQ_MODELS_DIR=<dir> makes them the defaults)."""
+    root = tmp_path_factory.mktemp("lmd_models")
+    for mode in ("threshold", "exact", "none"):
+        train_models(root / "lmd", LmdSettings(proposal_mode=mode))
+    return root
 
 
-def test_parameters(ros):
-    node = ros.start(LmdNode)
-    assert_declared_with_descriptions(node, {"use_proposals", "sync_mode", "sync_slop",
-                                             "sync_queue_size", "diagnostics_period"})
+def model_params(models_dir, mode="threshold", **extra):
+    d = models_dir / "lmd"
+    return {"proposal_mode": mode, "classifier_path": str(d / f"lmd_{mode}_classifier.joblib"),
+            "regressor_path": str(d / f"lmd_{mode}_regressor.joblib"), **extra}
+
+
+def load_models(models_dir, mode="threshold"):
+    p = model_params(models_dir, mode)
+    return MetaModels(p["classifier_path"], p["regressor_path"],
+                      LmdSettings(proposal_mode=mode).feature_names())
+
+
+_FRAMES = {}
+
+
+def frame(seed, sec, **kw):
+    """Messages of a small synthetic frame (fresh objects each call)."""
+    if seed not in _FRAMES:
+        _FRAMES[seed] = synthetic.synthetic_frame(n_points=20_000, n_objects=10,
+                                                  n_proposals=100, seed=seed)
+    return frame_messages(_FRAMES[seed], sec, **kw)
+
+
+def expected(seed, sec, models, mode="threshold"):
+    cloud, dets, props = frame(seed, sec)
+    fr = frame_features(cloud, None if mode == "exact" else dets,
+                        None if mode == "none" else props, LmdSettings(proposal_mode=mode))
+    return fr, *models.predict(fr.features)
+
+
+class Io:
+    """Publishers of the node's inputs and collectors of its outputs."""
+
+    def __init__(self, ros, node, inputs=("points", "detections", "proposals"), markers=False):
+        types = {"points": PointCloud2, "detections": Detection3DArray,
+                 "proposals": Detection3DArray}
+        self.pubs = {k: ros.sensor_publisher(types[k], f"input/{k}") for k in inputs}
+        self.dets = ros.collector(Detection3DArray, "output/detections")
+        self.quality = ros.collector(DetectionQualityArray, "output/quality")
+        self.markers = ros.collector(MarkerArray, "output/markers") if markers else None
+        assert all(ros.wait_for_match(p) for p in self.pubs.values())
+        assert ros.wait_for_match(self.dets.subscription)
+        assert ros.wait_for_match(self.quality.subscription)
+        if markers:
+            assert wait_until(lambda: node.pub_markers.get_subscription_count() > 0)
+
+    def send(self, cloud, dets=None, props=None):
+        for key, msg in (("detections", dets), ("proposals", props), ("points", cloud)):
+            if key in self.pubs and msg is not None:
+                self.pubs[key].publish(msg)
+
+
+def scores(det):
+    return [r.hypothesis.score for r in det.results]
+
+
+# ---------------------------------------------------------------- parameters, QoS
+def test_parameters(ros, models_dir):
+    node = ros.start(LmdNode, parameters=model_params(models_dir))
+    assert_declared_with_descriptions(node, set(PARAMS))
     assert_yaml_matches_declared(node, "lmd_ros")
 
 
-def test_inputs_use_sensor_qos(ros):
-    node = ros.start(LmdNode, parameters={"use_proposals": True})
-    for topic in ("input/points", "input/detections", "input/proposals"):
+@pytest.mark.parametrize("bad, match", [
+    ({"proposal_mode": "nms"}, "proposal_mode"),
+    ({"iou_threshold": 1.0}, "iou_threshold"),
+    ({"min_confidence": 1.5}, "min_confidence"),
+    ({"class_names": ["car", "car"]}, "duplicates"),
+    ({"sync_mode": "fuzzy"}, "sync_mode"),
+])
+def test_invalid_parameters_refused(ros, models_dir, bad, match):
+    # ValueError from our checks, rclpy's InvalidParameterValueException for ranges
+    with pytest.raises(Exception, match=match):
+        ros.start(LmdNode, parameters={**model_params(models_dir), **bad})
+
+
+@pytest.mark.parametrize("mode, inputs", [
+    ("threshold", ("input/points", "input/detections", "input/proposals")),
+    ("exact", ("input/points", "input/proposals")),
+    ("none", ("input/points", "input/detections")),
+])
+def test_inputs_by_mode_use_sensor_qos(ros, models_dir, mode, inputs):
+    node = ros.start(LmdNode, parameters=model_params(models_dir, mode))
+    assert node.inputs.topics == list(inputs)
+    for topic in inputs:
         assert_sensor_qos(node, topic)
 
 
-def test_detections_pass_through_in_order(ros):
-    ros.start(LmdNode)
-    pc = ros.sensor_publisher(PointCloud2, "input/points")
-    dp = ros.sensor_publisher(Detection3DArray, "input/detections")
-    out = ros.collector(Detection3DArray, "output/detections")
-    assert ros.wait_for_match(pc) and ros.wait_for_match(dp)
-    sent = []
-    for sec in range(1, 4):
-        cloud, dets = _frame(sec, n_boxes=sec + 1, seed=sec)
-        dp.publish(dets)  # detections before the cloud: the synchroniser must wait
-        pc.publish(cloud)
-        sent.append(dets)
-        assert out.wait_for(sec, timeout=10.0)
-    for got, want in zip(out.messages, sent):
-        assert got.header == want.header
-        assert [d.id for d in got.detections] == [d.id for d in want.detections]
-        assert got == want
+# ---------------------------------------------------------------- model refusal
+def test_missing_model_refuses_to_start(ros, models_dir, tmp_path):
+    params = model_params(models_dir, classifier_path=str(tmp_path / "nope.joblib"))
+    with pytest.raises(RuntimeError, match=r"nope\.joblib: missing manifest"):
+        ros.start(LmdNode, parameters=params)
 
 
-def test_malformed_cloud_is_counted_not_fatal(ros):
-    node = ros.start(LmdNode, parameters={"diagnostics_period": 0.2})
-    pc = ros.sensor_publisher(PointCloud2, "input/points")
-    dp = ros.sensor_publisher(Detection3DArray, "input/detections")
-    out = ros.collector(Detection3DArray, "output/detections")
+def test_schema_mismatched_model_refuses_to_start(ros, models_dir):
+    none = model_params(models_dir, "none")  # 17-feature models for the 90-feature mode
+    params = model_params(models_dir, "threshold", classifier_path=none["classifier_path"])
+    with pytest.raises(RuntimeError, match=r"lmd_none_classifier\.joblib: feature schema "
+                                           r"mismatch: missing from model: \['prop_x_min'"):
+        ros.start(LmdNode, parameters=params)
+
+
+def test_executable_without_models_exits_with_reason(ros, tmp_path):
+    proc = ros.spawn([str(executable("lmd_ros", "lmd_node"))], stdout=subprocess.PIPE,
+                     stderr=subprocess.STDOUT, text=True,
+                     extra_env={"LQ_MODELS_DIR": str(tmp_path)})
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 2, out
+    assert "node failed to start" in out and "lmd_threshold_classifier.joblib" in out, out
+    assert "missing manifest" in out, out
+
+
+# ---------------------------------------------------------------- outputs
+def test_outputs_equal_models_on_frame_features(ros, models_dir):
+    node = ros.start(LmdNode, parameters=model_params(models_dir))
+    io = Io(ros, node, markers=True)
+    models = load_models(models_dir)
+    seeds = [11, 12, 13]
+    for sec, seed in enumerate(seeds, start=1):
+        io.send(*frame(seed, sec))
+        assert io.dets.wait_for(sec, timeout=15.0) and io.quality.wait_for(sec, timeout=5.0)
+    assert io.markers.wait_for(len(seeds), timeout=5.0)
+    for k, (sec, seed) in enumerate(enumerate(seeds, start=1)):
+        fr, conf, iou = expected(seed, sec, models)
+        got, q = io.dets.messages[k], io.quality.messages[k]
+        sent = frame(seed, sec)[1]
+        assert got.header == sent.header and q.header == sent.header
+        # same detections, order, ids and boxes; top hypothesis = meta confidence
+        assert [d.id for d in got.detections] == [d.id for d in sent.detections]
+        assert [d.bbox for d in got.detections] == [d.bbox for d in sent.detections]
+        np.testing.assert_allclose([max(scores(d)) for d in got.detections], conf, rtol=1e-12)
+        for g, s in zip(got.detections, sent.detections):  # class distribution scaled
+            np.testing.assert_allclose(np.array(scores(g)) * max(scores(s)),
+                                       np.array(scores(s)) * max(scores(g)), rtol=1e-9)
+            assert [r.hypothesis.class_id for r in g.results] == \
+                [r.hypothesis.class_id for r in s.results]
+        assert [e.detection_index for e in q.detections] == list(range(len(conf)))
+        assert [e.detection_id for e in q.detections] == fr.detections.ids
+        assert [e.class_id for e in q.detections] == fr.detections.labels
+        np.testing.assert_allclose([e.original_score for e in q.detections], fr.detections.scores)
+        np.testing.assert_allclose([e.confidence for e in q.detections], conf, rtol=1e-12)
+        np.testing.assert_allclose([e.predicted_iou for e in q.detections], iou, rtol=1e-12)
+        assert (q.confidence_model_id, q.iou_model_id) == (models.confidence_model_id,
+                                                           models.iou_model_id)
+        texts = [m.text for m in io.markers.messages[k].markers if m.text]
+        assert texts == [f"{c} c={a:.2f} iou={b:.2f}"
+                         for c, a, b in zip(fr.detections.labels, conf, iou)]
+    # both classes of confidence occur (the test is not vacuous)
+    allc = np.concatenate([expected(s, i, models)[1] for i, s in enumerate(seeds, start=1)])
+    assert allc.min() < 0.5 < allc.max()
+    status = node.diag.status()
+    v = diag_values(status)
+    assert status.level == DiagnosticStatus.OK and v["frames_out"] == "3"
+    assert v["model.confidence"] == models.confidence_model_id
+    assert v["detections.in"] == v["detections.out"] == str(len(allc))
+
+
+def test_min_confidence_filters_only_below(ros, models_dir):
+    models = load_models(models_dir)
+    _, conf, _ = expected(21, 1, models)
+    thr = float(np.sort(conf)[len(conf) // 2])
+    node = ros.start(LmdNode, parameters=model_params(models_dir, min_confidence=thr))
+    io = Io(ros, node)
+    cloud, dets, props = frame(21, 1)
+    ids = [d.id for d in dets.detections]
+    io.send(cloud, dets, props)
+    assert io.dets.wait_for(1, timeout=15.0) and io.quality.wait_for(1, timeout=5.0)
+    want = [i for i, c in zip(ids, conf) if c >= thr]
+    assert 0 < len(want) < len(ids)
+    assert [d.id for d in io.dets.messages[0].detections] == want
+    assert [e.detection_id for e in io.quality.messages[0].detections] == ids  # all reported
+
+
+def test_exact_mode_scores_nms_survivors(ros, models_dir):
+    node = ros.start(LmdNode, parameters=model_params(models_dir, "exact"))
+    io = Io(ros, node, inputs=("points", "proposals"))
+    models = load_models(models_dir, "exact")
+    cloud, _, props = frame(31, 4)
+    io.send(cloud, props=props)
+    assert io.dets.wait_for(1, timeout=15.0) and io.quality.wait_for(1, timeout=5.0)
+    fr, conf, iou = expected(31, 4, models, "exact")
+    got = io.dets.messages[0]
+    assert 0 < len(got.detections) < len(props.detections)
+    assert [d.id for d in got.detections] == [m.id for m in fr.messages]
+    assert got.header == props.header
+    np.testing.assert_allclose([max(scores(d)) for d in got.detections], conf, rtol=1e-12)
+    np.testing.assert_allclose([e.predicted_iou for e in io.quality.messages[0].detections],
+                               iou, rtol=1e-12)
+
+
+def test_approximate_sync_with_jittered_stamps(ros, models_dir):
+    node = ros.start(LmdNode, parameters=model_params(models_dir, sync_mode="approximate",
+                                                      sync_slop=0.05))
+    io = Io(ros, node)
+    models = load_models(models_dir)
+    rng = np.random.default_rng(3)
+    n, sent = 4, []
+    for k in range(n):
+        cloud, dets, props = frame(41, 10 + k)
+        for msg in (cloud, dets, props):  # each its own header, stamps 10.2 + k s +- 20 ms
+            msg.header = header(10 + k, nanosec=int(2e8 + rng.integers(-2e7, 2e7)))
+        io.send(cloud, dets, props)
+        sent.append(dets.header)
+        assert io.dets.wait_for(k + 1, timeout=15.0)
+    for k, got in enumerate(io.dets.messages):
+        fr, conf, _ = expected(41, 10 + k, models)
+        assert got.header == sent[k]  # the detections' own (jittered) header
+        assert [d.id for d in got.detections] == fr.detections.ids
+        np.testing.assert_allclose([max(scores(d)) for d in got.detections], conf, rtol=1e-12)
+    assert node.diag.dropped == 0
+
+
+# ---------------------------------------------------------------- bad input
+def test_bad_input_does_not_kill_the_node(ros, models_dir):
+    node = ros.start(LmdNode, parameters=model_params(models_dir, diagnostics_period=0.2))
+    io = Io(ros, node)
     diag = ros.collector(DiagnosticArray, "/diagnostics")
-    assert ros.wait_for_match(pc) and ros.wait_for_match(dp)
-    cloud, dets = _frame(7)
-    cloud.data = cloud.data[:100]  # truncated buffer
-    pc.publish(cloud)
-    dp.publish(dets)
+    models = load_models(models_dir)
+    sec = 100
+
+    # 1. malformed cloud: frame dropped and counted, warning
+    cloud, dets, props = frame(51, sec)
+    cloud.data = cloud.data[:100]
+    io.send(cloud, dets, props)
     assert wait_until(lambda: node.diag.dropped == 1)
     status = node.diag.status()
     assert status.level == DiagnosticStatus.WARN and "input/points" in status.message
     assert diag_values(status)["dropped.malformed_cloud"] == "1"
     assert diag.wait_for(1, timeout=5.0)
-    good_cloud, good_dets = _frame(8)
-    pc.publish(good_cloud)
-    dp.publish(good_dets)
-    assert out.wait_for(1, timeout=10.0)
-    assert out.messages[0].header.stamp.sec == 8  # the bad frame produced no output
-    assert node.diag.dropped == 1
-    assert node.diag.status().level == DiagnosticStatus.OK  # the good frame cleared it
+
+    # 1b. bytes that are not a (little-endian CDR) Detection3DArray: dropped, counted
+    io.pubs["detections"].publish(b"\x00\x07\x00\x00" + bytes(40))
+    assert wait_until(lambda: diag_values(node.diag.status()).get("dropped.undecodable_input")
+                      == "1")
+
+    # 2. NaN box, zero-size box, unknown class, frame_id mismatch: processed, flagged
+    sec += 1
+    cloud, dets, props = frame(51, sec)
+    dets.detections[0].bbox.center.position.x = math.nan
+    dets.detections[2].bbox.size.z = 0.0
+    dets.detections[3].results[0].hypothesis.class_id = "tram"
+    dets.header = header(sec, "base_link")
+    props.header = header(sec, "base_link")
+    io.send(cloud, dets, props)
+    assert io.dets.wait_for(1, timeout=15.0) and io.quality.wait_for(1, timeout=5.0)
+    got, q = io.dets.messages[0], io.quality.messages[0]
+    assert [d.id for d in got.detections] == [d.id for d in dets.detections]  # all kept
+    conf = np.array([e.confidence for e in q.detections])
+    assert np.isnan(conf[[0, 2, 3]]).all() and np.isfinite(np.delete(conf, [0, 2, 3])).all()
+    assert all(math.isnan(s) for k in (0, 2, 3) for s in scores(got.detections[k]))
+    msg = node.diag.status().message
+    assert "3 invalid detection(s)" in msg and "unknown class 'tram'" in msg
+    assert "size <= 0" in msg and "non-finite centre" in msg and "frame_id mismatch" in msg
+    # the valid boxes are scored as without the bad ones
+    fr, want, _ = expected(51, sec, models)
+    np.testing.assert_allclose(np.delete(conf, [0, 2, 3]), np.delete(want, [0, 2, 3]),
+                               rtol=1e-12)
+
+    # 3. empty detections: an empty output, not an error
+    sec += 1
+    cloud, dets, props = frame(51, sec)
+    dets.detections = []
+    io.send(cloud, dets, props)
+    assert io.dets.wait_for(2, timeout=15.0)
+    assert io.dets.messages[1].detections == [] and io.quality.wait_for(2, timeout=5.0)
+
+    # 4. a valid frame afterwards is processed and clears the warnings
+    sec += 1
+    io.send(*frame(51, sec))
+    assert io.dets.wait_for(3, timeout=15.0)
+    assert io.dets.messages[2].header.stamp.sec == sec
+    np.testing.assert_allclose([max(scores(d)) for d in io.dets.messages[2].detections],
+                               expected(51, sec, models)[1], rtol=1e-12)
+    status = node.diag.status()
+    assert status.level == DiagnosticStatus.OK, status.message
+    v = diag_values(status)
+    assert node.diag.dropped == 2 and v["frames_out"] == "3" and v["detections.invalid"] == "3"
+    assert "dropped.processing_error" not in v
 
 
+# ---------------------------------------------------------------- executable
 @pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
-def test_executable_starts_and_stops_cleanly(ros, signame):
-    run_executable_and_signal(ros, "lmd_ros", "lmd_node", ["input/points", "input/detections"],
-                              signame)
+def test_executable_starts_and_stops_cleanly(ros, models_dir, monkeypatch, signame):
+    monkeypatch.setenv("LQ_MODELS_DIR", str(models_dir))  # default model paths
+    run_executable_and_signal(ros, "lmd_ros", "lmd_node",
+                              ["input/points", "input/detections", "input/proposals"], signame)
 
 
 def test_launch_file():
@@ -95,33 +335,31 @@ def test_launch_file():
     assert_launch_file("lmd_ros", "lmd_node")
 
 
-def test_signal_while_frames_are_processed(ros):
+def test_signal_while_frames_are_processed(ros, models_dir):
     """SIGINT in the middle of a stream: the frame in flight finishes, the exit is clean
     (with rclpy's default handlers this crashed about one run in six)."""
-    import signal
-    import subprocess
-    import time
-
-    from node_shell_checks import executable
-    frames = [_frame(sec, n_boxes=20, seed=sec) for sec in range(1, 6)]
+    frames = [frame(60 + k, 1) for k in range(3)]
     for trial in range(5):
         proc = ros.spawn([str(executable("lmd_ros", "lmd_node")), "--ros-args",
                           "-r", "__node:=lmd_stream"], stdout=subprocess.PIPE,
-                         stderr=subprocess.STDOUT, text=True, extra_env={"PYTHONFAULTHANDLER": "1"})
-        pc = ros.sensor_publisher(PointCloud2, "input/points")
-        dp = ros.sensor_publisher(Detection3DArray, "input/detections")
+                         stderr=subprocess.STDOUT, text=True,
+                         extra_env={"PYTHONFAULTHANDLER": "1", "LQ_MODELS_DIR": str(models_dir)})
+        pubs = [ros.sensor_publisher(PointCloud2, "input/points"),
+                ros.sensor_publisher(Detection3DArray, "input/detections"),
+                ros.sensor_publisher(Detection3DArray, "input/proposals")]
         out = ros.collector(Detection3DArray, "output/detections")
-        assert ros.wait_for_match(pc) and ros.wait_for_match(dp) and ros.wait_for_match(out.subscription)
+        assert all(ros.wait_for_match(p) for p in pubs) and ros.wait_for_match(out.subscription)
         # The node may match our writers later than we match its reader (best effort
         # samples before that are lost): stream until outputs flow, then signal mid-stream.
         # Discovery of our writers by the new node process occasionally waits for
         # Fast DDS's periodic announcements (seconds): bound the wait in time, not frames.
         k, signalled_at, deadline = 0, None, time.monotonic() + 60.0
         while signalled_at is None or k < signalled_at + 15:
-            cloud, dets = frames[k % len(frames)]
-            cloud.header.stamp.sec = dets.header.stamp.sec = 1000 * trial + k + 1
-            pc.publish(cloud)
-            dp.publish(dets)
+            msgs = frames[k % len(frames)]
+            h = header(1000 * trial + k + 1)
+            for pub, msg in zip(pubs, msgs):
+                msg.header = h
+                pub.publish(msg)
             if signalled_at is None and len(out) >= 3 + trial:
                 proc.send_signal(signal.SIGINT)
                 signalled_at = k
@@ -134,6 +372,6 @@ def test_signal_while_frames_are_processed(ros):
         text, _ = proc.communicate(timeout=20)
         assert proc.returncode == 0, f"trial {trial}: exit {proc.returncode}\n{text[-3000:]}"
         assert len(out) > 0
-        for sub in (pc, dp):
-            ros.node.destroy_publisher(sub)
+        for pub in pubs:
+            ros.node.destroy_publisher(pub)
         ros.node.destroy_subscription(out.subscription)

@@ -1,63 +1,363 @@
-"""mimo_node shell: parameters, K head inputs with sensor QoS, matching, clean shutdown."""
+"""mimo_node: parameters, merged outputs equal to the pipeline + meta models, stopped heads,
+variance and point inputs, malformed heads, model refusal, the installed executable."""
+import subprocess
+
 import numpy as np
 import pytest
-from lidar_quality_core.boxes import arrays_to_detections
+from lidar_quality_core.iou import iou_3d
+from lidar_quality_core.meta_model import MetaModels, fit_estimator, save_pair
+from lidar_quality_core.pointcloud import create_xyz_cloud
+from lidar_quality_msgs.msg import BoxVarianceArray, ClusterUncertaintyArray
 from mimo_ros.mimo_node import MimoNode
+from mimo_ros.pipeline import (DEFAULT_CLASS_NAMES, MimoSettings, default_model_paths,
+                               frame_features, process_frame)
 from node_shell_checks import (assert_declared_with_descriptions, assert_sensor_qos,
-                               assert_yaml_matches_declared, diag_values,
+                               assert_yaml_matches_declared, diag_values, executable,
                                run_executable_and_signal, wait_until)
+from reference_perception.messages import box_variance_array, detection_array
+from sensor_msgs.msg import PointCloud2
 from std_msgs.msg import Header
 from vision_msgs.msg import Detection3DArray
+from visualization_msgs.msg import MarkerArray
+
+NS_PER_FRAME = 100_000_000  # 10 Hz stamps
 
 
-def test_parameters_and_head_inputs(ros):
-    node = ros.start(MimoNode, parameters={"num_heads": 3})
-    assert_declared_with_descriptions(node, {"num_heads", "sync_mode", "sync_slop",
-                                             "sync_queue_size", "diagnostics_period"})
-    assert_yaml_matches_declared(node, "mimo_ros")
-    for k in range(3):
-        assert_sensor_qos(node, f"input/head_{k}")
-    assert node.inputs.topics == ["input/head_0", "input/head_1", "input/head_2"]
-
-
-def test_num_heads_range(ros):
-    with pytest.raises(Exception, match="num_heads"):
-        ros.start(MimoNode, parameters={"num_heads": 0})
-
-
-def test_heads_are_matched_by_stamp(ros):
-    node = ros.start(MimoNode, parameters={"num_heads": 2})
-    pubs = [ros.sensor_publisher(Detection3DArray, f"input/head_{k}") for k in range(2)]
-    assert all(ros.wait_for_match(p) for p in pubs)
+def header(i):
+    """Frame i: stamp 100 s + i / 10 s."""
     h = Header(frame_id="lidar")
-    boxes = np.array([[5.0, 1.0, 0.0, 4.0, 2.0, 1.5, 0.1]])
-    for sec in (1, 2):
-        h.stamp.sec = sec
-        for p in pubs:
-            p.publish(arrays_to_detections(h, boxes, ["car"], [0.9]))
-    h.stamp.sec = 3  # head 1 never sends frame 3
-    pubs[0].publish(arrays_to_detections(h, boxes, ["car"], [0.9]))
-    assert wait_until(lambda: node.diag.frames_out == 2)
-    assert diag_values(node.diag.status())["sync.matched"] == "2"
+    h.stamp.sec, h.stamp.nanosec = divmod(100_000_000_000 + i * NS_PER_FRAME, 1_000_000_000)
+    return h
 
 
-@pytest.mark.parametrize("signame", ["SIGINT", "SIGTERM"])
-def test_executable_starts_and_stops_cleanly(ros, signame):
-    run_executable_and_signal(ros, "mimo_ros", "mimo_node", ["input/head_0", "input/head_1"],
-                              signame)
+def make_frame(i, K=2, n_obj=12, n_ghost=3, n_fp=3, n_points=3000):
+    """Ground truth cars on a grid; K heads that see each with p = 0.85 with per-object
+    noise (so IoUs vary), ghost cars (no ground truth) that every head sees, a few
+    single-head false positives; predicted variances; a cloud."""
+    rng = np.random.default_rng([i, K])
+    gx, gy = np.meshgrid(np.arange(4) * 9.0 + 8.0, np.arange(3) * 7.0 - 7.0)
+    gt = np.column_stack([gx.ravel()[:n_obj] + rng.normal(0, 1, n_obj),
+                          gy.ravel()[:n_obj] + rng.normal(0, 1, n_obj), np.full(n_obj, -0.9),
+                          rng.normal(4.3, 0.2, n_obj), rng.normal(1.8, 0.05, n_obj),
+                          rng.normal(1.5, 0.05, n_obj), rng.uniform(-np.pi, np.pi, n_obj)])
+    ghosts = np.column_stack([np.arange(n_ghost) * 9.0 + 12.5, np.full(n_ghost, -10.5),
+                              np.full(n_ghost, -0.9), np.full((n_ghost, 3), [4.0, 1.8, 1.5]),
+                              rng.uniform(-3, 3, n_ghost)])
+    objects = np.vstack([gt, ghosts])
+    n_all = len(objects)
+    sd = rng.uniform(0.02, 0.25, n_all)
+    h = header(i)
+    heads, variances = [], []
+    for k in range(K):
+        seen = np.flatnonzero(np.r_[rng.random(n_obj) < 0.85, np.ones(n_ghost, bool)])
+        b = objects[seen].copy()
+        b[:, :2] += rng.normal(0, 1, (len(seen), 2)) * sd[seen, None]
+        b[:, 6] += rng.normal(0, 0.05, len(seen))
+        fp = np.column_stack([rng.uniform(5, 40, n_fp), rng.uniform(-12, 12, n_fp),
+                              np.full(n_fp, -0.9), np.full(n_fp, 4.0), np.full(n_fp, 1.8),
+                              np.full(n_fp, 1.5), rng.uniform(-3, 3, n_fp)])
+        boxes = np.vstack([b, fp])
+        p_car = np.concatenate([np.where(seen < n_obj, rng.uniform(0.5, 0.95, len(seen)),
+                                         rng.uniform(0.3, 0.6, len(seen))),
+                                rng.uniform(0.2, 0.5, n_fp)])
+        fg = np.column_stack([p_car, (1 - p_car) * 0.3, (1 - p_car) * 0.2, (1 - p_car) * 0.1])
+        var = (np.concatenate([sd[seen], np.full(n_fp, 0.5)])[:, None] ** 2
+               * [1, 1, 0.2, 0.1, 0.05, 0.05, 0.1])
+        ids = [f"{i}-{k}-{j}" for j in range(len(boxes))]
+        heads.append(detection_array(h, boxes, fg, DEFAULT_CLASS_NAMES, ids=ids, variances=var))
+        variances.append(box_variance_array(h, var, ids=ids))
+    xyz = np.vstack([gt[:, :3] + rng.uniform(-0.8, 0.8, (n_obj, 3)) for _ in range(20)]
+                    + [rng.uniform(-40, 40, (n_points, 3))]).astype(np.float32)
+    cloud = create_xyz_cloud(h, xyz, rng.random(len(xyz)).astype(np.float32))
+    return gt, heads, variances, cloud
+
+
+def _train(settings, frames, out_dir, prefix):
+    X, y = [], []
+    for gt, heads, variances, cloud in frames:
+        f = frame_features(heads, variances, settings, cloud)
+        X.append(f.features)
+        y.append(iou_3d(f.merge.boxes, gt).max(axis=1) if len(f) else np.zeros(0))
+    X, y = np.vstack(X), np.concatenate(y)
+    clf = fit_estimator("xgboost", "classification", X, (y >= 0.5).astype(float))
+    reg = fit_estimator("xgboost", "regression", X, y)
+    return save_pair(out_dir, prefix, clf, reg, settings.feature_names(),
+                     training_data={"frames": len(frames), "source": "test_mimo_node"})
+
+
+@pytest.fixture(scope="session")
+def model_dir(tmp_path_factory):
+    """A models directory (LQ_MODELS_DIR layout) with small real xgboost pairs trained on
+    pipeline features of synthetic multi-head frames, with and without point features."""
+    root = tmp_path_factory.mktemp("mimo_models")
+    frames = [make_frame(1000 + s) for s in range(10)]
+    for use_points in (False, True):
+        prefix = "mimo_points" if use_points else "mimo"
+        _train(MimoSettings(use_points=use_points), frames, root / "mimo", prefix)
+    return root
+
+
+def params(model_dir, use_points=False, **extra):
+    c, r = (model_dir / "mimo" / p.name for p in default_model_paths(use_points))
+    return {"classifier_path": str(c), "regressor_path": str(r), "use_points": use_points,
+            **extra}
+
+
+class Rig:
+    """The node under test with publishers for all its inputs and collectors on outputs."""
+
+    def __init__(self, ros, model_dir, use_points=False, **extra):
+        self.node = ros.start(MimoNode, parameters=params(model_dir, use_points, **extra))
+        K = self.node.settings.num_heads
+        self.heads = [ros.sensor_publisher(Detection3DArray, f"input/head_{k}") for k in range(K)]
+        self.vars = ([ros.sensor_publisher(BoxVarianceArray, f"input/head_{k}/variance")
+                      for k in range(K)] if self.node.use_variances else [])
+        self.points = ros.sensor_publisher(PointCloud2, "input/points") if use_points else None
+        self.dets = ros.collector(Detection3DArray, "output/detections")
+        self.unc = ros.collector(ClusterUncertaintyArray, "output/uncertainty")
+        self.markers = ros.collector(MarkerArray, "output/markers")
+        for p in self.heads + self.vars + ([self.points] if self.points else []):
+            assert ros.wait_for_match(p)
+        for c in (self.dets, self.unc):
+            assert ros.wait_for_match(c.subscription)
+
+    def send(self, heads, variances=(), cloud=None, skip=()):
+        """Publish a frame's messages and wait until the node received them (best-effort
+        inputs with a depth of 5: a burst on a busy machine would lose some)."""
+        sent = [(p, m) for k, (p, m) in enumerate(zip(self.heads, heads)) if k not in skip]
+        sent += [(p, m) for k, (p, m) in enumerate(zip(self.vars, variances)) if k not in skip]
+        if self.points is not None and cloud is not None:
+            sent.append((self.points, cloud))
+        before = {p.topic_name: received(self.node, p.topic_name) for p, _ in sent}
+        for p, m in sent:
+            p.publish(m)
+        for topic, n in before.items():
+            assert wait_until(lambda: received(self.node, topic) > n), topic
+
+
+def received(node, topic):
+    """Messages the node received on ``topic`` (absolute or relative name)."""
+    values = diag_values(node.diag.status())
+    return int(values.get(f"received.{topic.lstrip('/')}", 0))
+
+
+def by_stamp(msgs):
+    return {(m.header.stamp.sec, m.header.stamp.nanosec): m for m in msgs}
+
+
+def stamp(i):
+    h = header(i)
+    return h.stamp.sec, h.stamp.nanosec
+
+
+def test_parameters_and_inputs(ros, model_dir):
+    node = ros.start(MimoNode, parameters=params(model_dir, num_heads=3))
+    assert_declared_with_descriptions(node, {
+        "num_heads", "eps", "voting", "min_cluster_size", "class_aware", "temperature",
+        "use_variances", "use_points", "head_timeout", "classifier_path", "regressor_path",
+        "class_names", "publish_markers", "output_scores", "sync_mode", "sync_slop",
+        "sync_queue_size", "processing_queue_size", "diagnostics_period"})
+    assert_yaml_matches_declared(node, "mimo_ros")
+    assert node.inputs.topics == [f"input/head_{k}" for k in range(3)] + [
+        f"input/head_{k}/variance" for k in range(3)]
+    for t in node.inputs.topics:
+        assert_sensor_qos(node, t)
+    node2 = ros.start(MimoNode, parameters=params(model_dir, True, use_variances=False))
+    assert node2.inputs.topics == ["input/head_0", "input/head_1", "input/points"]
+
+
+@pytest.mark.parametrize("name,value,match", [
+    ("num_heads", 0, "num_heads"), ("eps", 1.0, "eps"), ("voting", "majority", "voting"),
+    ("temperature", 0.0, "temperature"), ("head_timeout", 0.0, "head_timeout"),
+    ("class_names", ["car", "car"], "duplicates"), ("output_scores", "raw", "output_scores")])
+def test_invalid_parameters_are_refused(ros, model_dir, name, value, match):
+    with pytest.raises(Exception, match=match):
+        ros.start(MimoNode, parameters=params(model_dir, **{name: value}))
+
+
+def test_refuses_to_start_without_valid_models(ros, model_dir, tmp_path):
+    with pytest.raises(RuntimeError, match="cannot load its meta models.*missing"):
+        ros.start(MimoNode, parameters={"classifier_path": str(tmp_path / "missing.joblib"),
+                                        "regressor_path": str(tmp_path / "missing.joblib")})
+    # the points models have another feature schema: refused, not misread
+    c, r = (model_dir / "mimo" / p.name for p in default_model_paths(True))
+    with pytest.raises(RuntimeError, match="feature"):
+        ros.start(MimoNode, parameters={"classifier_path": str(c), "regressor_path": str(r)})
+
+
+def test_outputs_equal_pipeline_and_meta_models(ros, model_dir):
+    rig = Rig(ros, model_dir, processing_queue_size=10)
+    frames = [make_frame(i) for i in range(3)]
+    for _, heads, variances, _ in frames:
+        rig.send(heads, variances)
+    assert rig.dets.wait_for(3) and rig.unc.wait_for(3) and rig.markers.wait_for(3)
+    p = params(model_dir)
+    settings = MimoSettings()
+    models = MetaModels(p["classifier_path"], p["regressor_path"], settings.feature_names())
+    dets, unc = by_stamp(rig.dets.messages), by_stamp(rig.unc.messages)
+    for i, (_, heads, variances, _) in enumerate(frames):
+        ref = process_frame(heads[0].header, heads, variances, settings, models)
+        d, u = dets[stamp(i)], unc[stamp(i)]
+        assert len(ref.frame) > 5 and len(d.detections) == len(ref.frame)
+        assert [x.id for x in d.detections] == [x.id for x in ref.detections.detections]
+        np.testing.assert_allclose([c.confidence for c in u.clusters], ref.confidence)
+        np.testing.assert_allclose([c.predicted_iou for c in u.clusters], ref.predicted_iou)
+        np.testing.assert_allclose([x.results[0].hypothesis.score for x in d.detections],
+                                   ref.confidence)
+        np.testing.assert_allclose(
+            [[x.bbox.center.position.x, x.bbox.center.position.y, x.bbox.size.x]
+             for x in d.detections], ref.frame.merge.boxes[:, [0, 1, 3]])
+        np.testing.assert_allclose([c.aleatoric_total_variance for c in u.clusters],
+                                   ref.frame.merge.stats.aleatoric_total_variance)
+        assert u.confidence_model_id == models.confidence_model_id and u.iou_model_id
+        assert d.header.frame_id == "lidar"
+    assert 0.0 < np.mean([c.confidence for m in rig.unc.messages for c in m.clusters]) < 1.0
+    assert rig.node.diag.dropped == 0
+
+
+def test_stopped_head_fallback_and_recovery(ros, model_dir):
+    rig = Rig(ros, model_dir, use_variances=False, head_timeout=0.35,
+              processing_queue_size=20)
+    node = rig.node
+    frames = [make_frame(i) for i in range(14)]
+
+    def send(i, skip=()):
+        rig.send(frames[i][1], skip=skip)
+
+    for i in range(3):
+        send(i)
+    assert rig.dets.wait_for(3)
+    for i in range(3, 6):  # head 1 stops after frame 2: frames 3.. wait for it
+        send(i, skip=(1,))
+    assert not rig.dets.wait_for(4, timeout=0.3)
+    send(6, skip=(1,))  # 0.6 - 0.2 s > head_timeout: merged without head 1 from now on
+    assert rig.dets.wait_for(7)  # the waiting frames 3..6 came out
+    assert "input/head_1 sent nothing" in node.diag.status().message
+    assert diag_values(node.diag.status())["inputs_stopped"] == "input/head_1"
+    for i in range(7, 10):
+        send(i, skip=(1,))
+    send(10, skip=(0,))  # head 1 is back (first), then head 0 of the same frame
+    assert wait_until(lambda: node.liveness.stopped == [])
+    send(10, skip=(1,))
+    for i in range(11, 14):
+        send(i)
+    assert rig.dets.wait_for(14, timeout=30) and rig.unc.wait_for(14, timeout=30), (
+        sorted(by_stamp(rig.dets.messages)), node.inputs.sync.stats())
+    assert node.diag.status().message == "ok"
+    assert diag_values(node.diag.status())["inputs_stopped"] == "none"
+    unc, dets = by_stamp(rig.unc.messages), by_stamp(rig.dets.messages)
+    assert sorted(unc) == [stamp(i) for i in range(14)]
+    settings = MimoSettings()
+    for i in range(14):
+        heads = frames[i][1]
+        if 3 <= i < 10:
+            heads = [heads[0], None]
+        ref = frame_features(heads, None, settings)
+        assert [d.id for d in dets[stamp(i)].detections] == ref.merged_ids()
+        tops = {d.id.split(":")[0] for d in dets[stamp(i)].detections}
+        sizes = [c.cluster_size for c in unc[stamp(i)].clusters]
+        if 3 <= i < 10:  # one head, one vote: its boxes alone
+            assert tops == {"0"} and len(sizes) == len(frames[i][1][0].detections) - sum(
+                s - 1 for s in sizes)
+        else:
+            assert np.median(sizes) == 2
+    values = diag_values(node.diag.status())
+    assert int(values["frames_partial"]) == 7 and values["dropped"] == "0"
+
+
+def test_variance_topics(ros, model_dir):
+    rig = Rig(ros, model_dir, head_timeout=0.25, processing_queue_size=20)
+    frames = [make_frame(i) for i in range(6)]
+    rig.send(frames[0][1], frames[0][2])
+    assert rig.unc.wait_for(1)
+    u = rig.unc.messages[0]
+    ref = frame_features(frames[0][1], frames[0][2], MimoSettings())
+    atv = [c.aleatoric_total_variance for c in u.clusters]
+    assert np.isfinite(atv).all()
+    np.testing.assert_allclose(atv, ref.merge.stats.aleatoric_total_variance)
+    # the variance topics stop: frames still come out, without aleatoric figures
+    for i in range(1, 6):
+        rig.send(frames[i][1])
+    assert rig.unc.wait_for(6, timeout=10)
+    last = by_stamp(rig.unc.messages)[stamp(5)]
+    assert np.isnan([c.aleatoric_total_variance for c in last.clusters]).all()
+    assert "variance sent nothing" in rig.node.diag.status().message
+
+
+def test_points_input(ros, model_dir):
+    rig = Rig(ros, model_dir, use_points=True, processing_queue_size=10)
+    frames = [make_frame(i) for i in range(2)]
+    for _, heads, variances, cloud in frames:
+        rig.send(heads, variances, cloud)
+    assert rig.unc.wait_for(2)
+    p = params(model_dir, True)
+    settings = MimoSettings(use_points=True)
+    models = MetaModels(p["classifier_path"], p["regressor_path"], settings.feature_names())
+    got = by_stamp(rig.unc.messages)
+    for i, (_, heads, variances, cloud) in enumerate(frames):
+        ref = process_frame(heads[0].header, heads, variances, settings, models, cloud_msg=cloud)
+        assert np.isfinite(ref.frame.features[:, -5:]).all()
+        np.testing.assert_allclose([c.confidence for c in got[stamp(i)].clusters],
+                                   ref.confidence)
+
+
+def test_malformed_heads_do_not_kill_the_node(ros, model_dir):
+    rig = Rig(ros, model_dir, use_variances=False, processing_queue_size=10)
+    _, heads, _, _ = make_frame(0)
+    bad = [Detection3DArray(header=h.header, detections=list(h.detections)) for h in heads]
+    bad[0].detections[0].bbox.center.position.x = float("nan")
+    bad[0].detections[1].bbox.size.x = 0.0
+    for r in bad[1].detections[0].results:
+        r.hypothesis.class_id = "ufo"
+    bad[1].detections[1].results = []
+    rig.send(bad)
+    assert rig.dets.wait_for(1)
+    assert "unusable box(es)" in rig.node.diag.status().message
+    # thousands of boxes per head (most of them overlapping junk)
+    rng = np.random.default_rng(5)
+    h = header(1)
+    many = []
+    for k in range(2):
+        b = np.column_stack([rng.uniform(0, 60, (3000, 2)), np.full(3000, -0.9),
+                             np.tile([4.0, 1.8, 1.5], (3000, 1)), rng.uniform(-3, 3, 3000)])
+        fg = np.tile([0.6, 0.1, 0.1, 0.1], (3000, 1))
+        many.append(detection_array(h, b, fg, DEFAULT_CLASS_NAMES))
+    rig.send(many)
+    assert rig.dets.wait_for(2, timeout=30)
+    # and a normal frame afterwards
+    _, heads, _, _ = make_frame(2)
+    rig.send(heads)
+    assert rig.dets.wait_for(3, timeout=10)
+    assert len(rig.dets.messages[-1].detections) > 5
+    assert rig.node.diag.status().message == "ok"
+    assert "dropped.processing_error" not in diag_values(rig.node.diag.status())
+
+
+def test_executable_starts_and_stops_cleanly(ros, model_dir, monkeypatch):
+    monkeypatch.setenv("LQ_MODELS_DIR", str(model_dir))  # the default model paths
+    run_executable_and_signal(ros, "mimo_ros", "mimo_node",
+                              ["input/head_0", "input/head_1", "input/head_0/variance",
+                               "input/head_1/variance"], "SIGTERM")
+
+
+def test_executable_without_models_exits_with_code_2(ros, tmp_path, monkeypatch):
+    monkeypatch.setenv("LQ_MODELS_DIR", str(tmp_path))
+    proc = ros.spawn([str(executable("mimo_ros", "mimo_node"))],
+                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 2, out
+    assert "node failed to start" in out and "meta models" in out
+
+
+def test_bad_parameter_exits_with_code_2(ros):
+    proc = ros.spawn([str(executable("mimo_ros", "mimo_node")), "--ros-args", "-p",
+                      "num_heads:=0"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                     text=True)
+    out, _ = proc.communicate(timeout=30)
+    assert proc.returncode == 2, out
+    assert "node failed to start" in out and "num_heads" in out
 
 
 def test_launch_file():
     from node_shell_checks import assert_launch_file
     assert_launch_file("mimo_ros", "mimo_node")
-
-
-def test_bad_parameter_exits_with_code_2(ros):
-    import subprocess
-
-    from node_shell_checks import executable
-    proc = ros.spawn([str(executable("mimo_ros", "mimo_node")), "--ros-args", "-p", "num_heads:=0"],
-                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    out, _ = proc.communicate(timeout=30)
-    assert proc.returncode == 2, out
-    assert "node failed to start" in out and "num_heads" in out

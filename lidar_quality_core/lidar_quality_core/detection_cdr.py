@@ -1,0 +1,325 @@
+"""vision_msgs/Detection3DArray read from and written to its serialized (CDR) bytes.
+
+Why: rclpy turns a received Detection3DArray into one Python object per nested message,
+and each generated ``__init__`` first builds defaults of all its sub-messages. A
+reference-detector proposal array (~450 boxes x 4 hypotheses, 0.8 MB) takes 100-300 ms to
+deserialize that way, which is 10-20x the whole LMD frame. A node that subscribes with
+``raw=True`` (``SyncedInputs(..., raw_decoders=...)``) and decodes here gets the
+:class:`~lidar_quality_core.boxes.DetectionArrays` in ~2 ms, and can publish its re-scored
+output as bytes (``rclpy`` publishers take serialized messages).
+
+Format: the 4-byte encapsulation header (plain little-endian CDR, ``00 01``, as ROS 2's
+DDS layers write ROS messages on little-endian machines), then the fields in order, each
+primitive aligned to its size relative to the end of the encapsulation header; strings
+are a uint32 length (including the NUL) and the bytes; sequences a uint32 count.
+Detection3D: header (stamp sec int32, nanosec uint32, frame_id), results[]
+(class_id, score float64, pose: 7 float64, covariance: 36 float64), bbox (centre: 7
+float64, size: 3 float64), id. Anything else (other encapsulations, truncated data)
+raises :class:`CdrError`. No rclpy; ``std_msgs`` only for the decoded header.
+"""
+from __future__ import annotations
+
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from .boxes import DetectionArrays, arrays_from_fields
+
+__all__ = ["CdrError", "DecodedDetections", "decode_detection_array", "encode_detection_array",
+           "rescaled_scores", "encode_detections"]
+
+_ENCAPS = {b"\x00\x01": "<"}
+_N_HYP_DOUBLES = 44  # score + pose (7) + covariance (36), contiguous and 8-aligned
+_PAD = [b"\0" * k for k in range(8)]
+
+
+class CdrError(ValueError):
+    """Serialized bytes that are not a Detection3DArray this module can read."""
+
+
+class _Fmt:
+    def __init__(self, e: str):
+        self.u32 = struct.Struct(e + "I")
+        self.stamp = struct.Struct(e + "iI")
+        self.f64 = struct.Struct(e + "d")
+        self.dtype = np.dtype(e + "f8")
+
+
+_FMTS = {e: _Fmt(e) for e in _ENCAPS.values()}
+
+
+@dataclass
+class DecodedDetections:
+    """A decoded Detection3DArray: ``header`` (std_msgs/Header), ``arrays`` as from
+    ``boxes.detections_to_arrays``, and where each part sits in ``data`` (for
+    :func:`encode_detection_array`). Hypotheses are flat, grouped by detection:
+    detection ``i`` owns ``hyp_offsets[i]:hyp_offsets[i + 1]``."""
+
+    header: object
+    arrays: DetectionArrays
+    data: bytes
+    endian: str
+    det_spans: np.ndarray    # (n, 2) start of the detection, start of its results count
+    bbox_at: np.ndarray      # (n,) offset of the 10 bbox doubles
+    id_at: np.ndarray        # (n,) offset of the id string
+    hyp_offsets: np.ndarray  # (n + 1,) CSR
+    hyp_det: np.ndarray      # (H,) owning detection
+    hyp_class_at: np.ndarray  # (H,) offset of the class_id string
+    hyp_score_at: np.ndarray  # (H,) offset of the score (then pose and covariance)
+    hyp_score: np.ndarray    # (H,) float64
+
+    def __len__(self) -> int:
+        return len(self.bbox_at)
+
+
+def _string(buf, p: int, u32, end: int):
+    """(str, offset after it) of the CDR string at ``p`` (already aligned)."""
+    (length,) = u32.unpack_from(buf, p)
+    q = p + 4 + length
+    if length == 0 or q > end:
+        raise CdrError(f"bad string at byte {p}: length {length}")
+    try:
+        return buf[p + 4:q - 1].decode("utf-8"), q
+    except UnicodeDecodeError as exc:
+        raise CdrError(f"string at byte {p} is not UTF-8: {exc}") from None
+
+
+def _gather(raw_bytes: np.ndarray, at: np.ndarray, nbytes: int) -> np.ndarray:
+    """(len(at), nbytes) uint8: the bytes at each offset ``at``."""
+    return raw_bytes[at[:, None] + np.arange(nbytes)]
+
+
+def _class_codes(buf: bytes, raw_bytes: np.ndarray, at: np.ndarray, lengths: np.ndarray):
+    """(codes, names in order of first appearance) of the strings at ``at``: grouped
+    by their bytes with one lexsort (a few distinct class names, thousands of entries)."""
+    if not len(at):
+        return np.zeros(0, dtype=np.int64), []
+    width = -(-int(lengths.max()) // 8) * 8
+    chars = _gather(raw_bytes, at + 4, width)
+    chars[np.arange(width)[None, :] >= lengths[:, None] - 1] = 0  # NUL and beyond
+    words = chars.view(np.uint64)  # (n, width / 8): equal rows <=> equal strings
+    order = np.lexsort([words[:, j] for j in range(words.shape[1])] + [lengths])  # stable
+    srt = np.column_stack([lengths[order], words[order]])
+    new = np.ones(len(order), dtype=bool)
+    new[1:] = (srt[1:] != srt[:-1]).any(axis=1)
+    group = np.cumsum(new) - 1
+    starts = np.flatnonzero(new)
+    first = order[starts]  # first appearance of each group (the sort is stable)
+    rank = np.empty(len(starts), dtype=np.int64)
+    rank[np.argsort(first, kind="stable")] = np.arange(len(starts))
+    codes = np.empty(len(at), dtype=np.int64)
+    codes[order] = rank[group]
+    names = [""] * len(starts)
+    for g, i in enumerate(first.tolist()):
+        names[rank[g]] = _string(buf, int(at[i]), _FMTS["<"].u32, len(buf))[0]
+    return codes, names
+
+
+def decode_detection_array(data) -> DecodedDetections:
+    """Decode serialized Detection3DArray bytes (``CdrError`` when they are not one)."""
+    from std_msgs.msg import Header
+
+    buf = bytes(data)
+    end = len(buf)
+    e = _ENCAPS.get(buf[:2]) if end >= 4 else None
+    if e is None:
+        raise CdrError(f"unsupported encapsulation {buf[:4].hex() or '(empty)'} "
+                       "(plain little-endian CDR expected: 0001)")
+    f = _FMTS[e]
+    u32 = f.u32.unpack_from
+    try:
+        sec, nsec = f.stamp.unpack_from(buf, 4)
+        frame_id, p = _string(buf, 12, f.u32, end)
+        p += -(p - 4) % 4
+        (n,) = u32(buf, p)
+        p += 4
+        if n > (end - p) // 100:  # a Detection3D takes > 100 bytes
+            raise CdrError(f"{n} detections cannot fit in {end} bytes")
+        spans, bbox_at, id_at, ids = [], [], [], []
+        hyp_off, cls_at = [0], []
+        add_cls = cls_at.append
+        # One pass over the variable-length layout, offsets only (the hot loop: one
+        # iteration per hypothesis); strings, scores and boxes are gathered afterwards.
+        for _ in range(n):
+            p += -(p - 4) % 4
+            start = p
+            p += 12 + u32(buf, p + 8)[0]  # per-detection header: stamp, frame_id
+            p += -(p - 4) % 4
+            (k,) = u32(buf, p)
+            spans.append((start, p))
+            p += 4
+            for _ in range(k):
+                p += -(p - 4) % 4
+                add_cls(p)
+                q = p + 4 + u32(buf, p)[0]
+                p = q + (-(q - 4) % 8) + 8 * _N_HYP_DOUBLES
+            hyp_off.append(len(cls_at))
+            p += -(p - 4) % 8
+            bbox_at.append(p)
+            p += 80
+            p += -(p - 4) % 4
+            id_at.append(p)
+            q = p + 4 + u32(buf, p)[0]
+            ids.append(buf[p + 4:q - 1])
+            p = q
+    except struct.error as exc:
+        raise CdrError(f"truncated Detection3DArray ({end} bytes): {exc}") from None
+    if p > end:
+        raise CdrError(f"truncated Detection3DArray: {end} bytes, need {p}")
+    id_at = np.asarray(id_at, dtype=np.int64)
+    if n and np.any(_gather(np.frombuffer(buf, np.uint8), id_at, 4).view("<u4") == 0):
+        raise CdrError("bad string: an id of length 0")
+    try:
+        ids = [b.decode("utf-8") for b in ids]
+    except UnicodeDecodeError as exc:
+        raise CdrError(f"an id is not UTF-8: {exc}") from None
+    raw_bytes = np.frombuffer(buf, dtype=np.uint8)
+    bbox_at = np.asarray(bbox_at, dtype=np.int64)
+    cls_at = np.asarray(cls_at, dtype=np.int64)
+    hyp_off = np.asarray(hyp_off, dtype=np.int64)
+    lengths = _gather(raw_bytes, cls_at, 4).view(f.u32.format[0] + "u4").reshape(-1)
+    lengths = lengths.astype(np.int64)
+    if len(lengths) and lengths.min() == 0:
+        raise CdrError(f"bad string at byte {int(cls_at[np.argmin(lengths)])}: length 0")
+    q = cls_at + 4 + lengths
+    score_at = q + (-(q - 4) % 8)
+    hyp_sc = _gather(raw_bytes, score_at, 8).view(f.dtype).reshape(-1).astype(np.float64)
+    codes, names = _class_codes(buf, raw_bytes, cls_at, lengths)
+    # centre position (3), orientation (4), size (3) -> centre, size, quaternion
+    bb = _gather(raw_bytes, bbox_at, 80).view(f.dtype).reshape(n, 10).astype(np.float64)
+    raw = np.concatenate([bb[:, :3], bb[:, 7:10], bb[:, 3:7]], axis=1)
+    hyp_det = np.repeat(np.arange(n), np.diff(hyp_off))
+    h = Header(frame_id=frame_id)
+    h.stamp.sec, h.stamp.nanosec = sec, nsec
+    return DecodedDetections(
+        header=h, arrays=arrays_from_fields(raw, ids, hyp_det, (codes, names), hyp_sc),
+        data=buf, endian=e, det_spans=np.asarray(spans, dtype=np.int64).reshape(n, 2),
+        bbox_at=bbox_at, id_at=id_at, hyp_offsets=hyp_off,
+        hyp_det=hyp_det, hyp_class_at=cls_at, hyp_score_at=score_at, hyp_score=hyp_sc)
+
+
+def rescaled_scores(hyp_score, hyp_det, confidence) -> np.ndarray:
+    """Hypothesis scores (flat, ``hyp_det`` = detection of each) re-scaled per detection so
+    that its top hypothesis equals ``confidence[det]`` and the others keep their ratio to
+    it. A top score <= 0 (or none finite) cannot be scaled: the first top hypothesis is set
+    to the confidence, the others stay. NaN confidence: every score of the detection NaN."""
+    s = np.asarray(hyp_score, dtype=np.float64)
+    det = np.asarray(hyp_det, dtype=np.int64)
+    conf = np.asarray(confidence, dtype=np.float64)
+    top = np.full(len(conf), -np.inf)
+    np.fmax.at(top, det, s)  # NaN scores never win
+    c, t = conf[det], top[det]
+    scalable = (t > 0) & np.isfinite(t)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = np.where(scalable, s * (c / t), s)
+    is_top = s == t
+    out[is_top & scalable] = c[is_top & scalable]  # exact, not c / t * t
+    # unscalable detections: their first top hypothesis (or first, if none is finite)
+    un = np.flatnonzero(~scalable)
+    if len(un):
+        first = {}
+        for j, d, v, tv in zip(un.tolist(), det[un].tolist(), s[un].tolist(), t[un].tolist()):
+            if d not in first or (v == tv and s[first[d]] != tv):
+                first[d] = j
+        idx = np.fromiter(first.values(), dtype=np.int64, count=len(first))
+        out[idx] = conf[det[idx]]
+    out[np.isnan(c)] = np.nan
+    return out
+
+
+def encode_detection_array(dec: DecodedDetections, rows, hyp_score=None) -> bytes:
+    """Serialized Detection3DArray of detections ``rows`` of ``dec`` (in that order), with
+    the header of ``dec``, every field copied, and hypothesis scores ``hyp_score`` (flat,
+    one per hypothesis of ``dec``; None keeps them)."""
+    buf, f = dec.data, _FMTS[dec.endian]
+    pack_d = f.f64.pack
+    out = bytearray(buf[:4])
+    # array header: stamp and frame_id as they are
+    (flen,) = f.u32.unpack_from(buf, 12)
+    out += buf[4:16 + flen]
+
+    rows = np.asarray(rows, dtype=np.int64).reshape(-1).tolist()
+    out += _PAD[-(len(out) - 4) % 4]
+    out += f.u32.pack(len(rows))
+    scores = dec.hyp_score if hyp_score is None else np.asarray(hyp_score, dtype=np.float64)
+    off = dec.hyp_offsets.tolist()
+    cls_at, score_at = dec.hyp_class_at.tolist(), dec.hyp_score_at.tolist()
+    sc = scores.tolist()
+    spans, bbox_at, id_at = dec.det_spans.tolist(), dec.bbox_at.tolist(), dec.id_at.tolist()
+    u32 = f.u32
+    for i in rows:
+        start, count_at = spans[i]
+        out += _PAD[-(len(out) - 4) % 4]
+        out += buf[start:count_at]  # header: 4-aligned fields only
+        out += _PAD[-(len(out) - 4) % 4]
+        out += buf[count_at:count_at + 4]
+        for j in range(off[i], off[i + 1]):
+            out += _PAD[-(len(out) - 4) % 4]
+            c = cls_at[j]
+            out += buf[c:c + 4 + u32.unpack_from(buf, c)[0]]
+            out += _PAD[-(len(out) - 4) % 8]
+            out += pack_d(sc[j])
+            s = score_at[j] + 8
+            out += buf[s:s + 8 * (_N_HYP_DOUBLES - 1)]
+        out += _PAD[-(len(out) - 4) % 8]
+        out += buf[bbox_at[i]:bbox_at[i] + 80]
+        out += _PAD[-(len(out) - 4) % 4]
+        a = id_at[i]
+        out += buf[a:a + 4 + u32.unpack_from(buf, a)[0]]
+    return bytes(out)
+
+
+def encode_detections(header, boxes, class_names, class_scores, *, ids=None,
+                      covariance_diagonal=None) -> bytes:
+    """Serialized (little-endian CDR) Detection3DArray of new boxes: the message
+    ``boxes.arrays_to_detections(header, boxes, None, None, ids=ids, class_scores=
+    {class_names[c]: class_scores[:, c]}, covariance_diagonal=...)`` would serialize to
+    (padding bytes aside, which rclpy leaves uninitialized), without building it and
+    having rclpy convert it (~3.5 ms for 60 boxes x 4 classes, this ~0.7 ms). One
+    hypothesis per finite score, highest first (ties: column order). ``boxes`` (N, 7),
+    ``class_scores`` (N, C), ``covariance_diagonal`` (N, 6) or None."""
+    from .boxes import yaw_to_quaternion
+
+    f = _FMTS["<"]
+    u32 = f.u32.pack
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
+    n = len(b)
+    S = np.asarray(class_scores, dtype=np.float64).reshape(n, len(class_names))
+    fin = np.isfinite(S)
+    order = np.argsort(-np.where(fin, S, -np.inf), axis=1, kind="stable")
+    counts = fin.sum(axis=1).tolist()
+    quat = yaw_to_quaternion(b[:, 6])
+    pose = np.concatenate([b[:, :3], quat], axis=1)
+    cov = np.zeros((n, 36))
+    if covariance_diagonal is not None:
+        cov[:, ::7] = np.asarray(covariance_diagonal, dtype=np.float64).reshape(n, 6)
+    # per detection: the pose + covariance bytes of its hypotheses, its bbox bytes
+    pose_cov = np.concatenate([pose, cov], axis=1).astype("<f8").tobytes()
+    bbox = np.concatenate([pose, b[:, 3:6]], axis=1).astype("<f8").tobytes()
+    names = [u32(len(c.encode()) + 1) + c.encode() + b"\0" for c in class_names]
+    frame = header.frame_id.encode() + b"\0"
+    hdr = f.stamp.pack(header.stamp.sec, header.stamp.nanosec) + u32(len(frame)) + frame
+    hdr += b"\0" * (-len(hdr) % 4)  # the next field (a uint32) is 4-aligned
+    out = bytearray(b"\x00\x01\x00\x00")
+    out += hdr
+    out += u32(n)
+    ids = [str(i) for i in range(n)] if ids is None else [str(i) for i in ids]
+    pack_d = f.f64.pack
+    sc, od = S.tolist(), order.tolist()
+    for i in range(n):
+        out += b"\0" * (-(len(out) - 4) % 4)
+        out += hdr
+        out += u32(counts[i])
+        pc = pose_cov[i * 344:(i + 1) * 344]
+        for c in od[i][:counts[i]]:
+            out += b"\0" * (-(len(out) - 4) % 4)
+            out += names[c]
+            out += b"\0" * (-(len(out) - 4) % 8)
+            out += pack_d(sc[i][c])
+            out += pc
+        out += b"\0" * (-(len(out) - 4) % 8)
+        out += bbox[i * 80:(i + 1) * 80]
+        did = ids[i].encode() + b"\0"
+        out += u32(len(did)) + did  # 80 bytes after an 8-aligned offset: 4-aligned
+    return bytes(out)

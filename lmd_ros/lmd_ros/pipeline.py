@@ -1,0 +1,331 @@
+"""LidarMetaDetect per frame: messages -> features -> meta models -> output messages.
+
+Shared by ``lmd_node`` (through :class:`LmdProcessor`, the node's whole frame callback
+body), training and evaluation (through :func:`frame_features`, so that a model is
+trained on exactly the features the node computes). No rclpy: messages are handled
+duck-typed; the message classes of the outputs are imported when a processor is built.
+Detection arrays come as Detection3DArray messages (bags, tests) or as
+``detection_cdr.DecodedDetections`` (the node, which takes them as bytes: rclpy's
+deserialization of a few hundred proposals costs more than the whole frame); both give
+the same features.
+
+Proposal modes (``LmdSettings.proposal_mode``, see :mod:`lmd_ros.features`):
+
+* ``"exact"``: only proposals come in; we run class-agnostic rotated BEV NMS on them
+  (``nms_iou_threshold``, proposals scoring below ``nms_score_threshold`` or invalid take
+  no part) and the survivors, in NMS order (descending score), are the detections we
+  score; the proposal set of a survivor is its exact NMS pre-image.
+* ``"threshold"``: post-NMS detections and pre-NMS proposals come separately; the set of
+  a detection is every proposal scoring above ``proposal_score_threshold`` whose BEV IoU
+  with it is above ``iou_threshold`` (the authors' rule).
+* ``"none"``: detections only (17 features).
+
+Invalid boxes: a detection whose box cannot be used (``boxes.detections_to_arrays``
+reasons: non-finite values, size <= 0, no hypothesis, ...) or whose class is not in
+``class_names`` ("unknown class", since the model never saw it) gets an all-NaN feature
+row, ``valid = False``, NaN confidence and NaN predicted IoU. It stays in the output.
+
+The cloud must have x, y, z and an intensity field (``intensity``, ``reflectance`` or
+``i``): the reflectance statistics are model inputs, so a cloud without one is refused
+(:class:`~lidar_quality_core.pointcloud.CloudFormatError`), like a malformed one.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays
+from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
+                                              rescaled_scores)
+from lidar_quality_core.model_store import models_dir
+from lidar_quality_core.nms import rotated_nms
+from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
+
+from . import features
+
+__all__ = ["MODES", "LmdSettings", "LmdFrame", "frame_features", "default_model_paths",
+           "take_detections", "LmdOutputs", "LmdProcessor", "frame_id_mismatch"]
+
+MODES = features.MODES
+
+
+@dataclass(frozen=True)
+class LmdSettings:
+    """Feature settings; a model is valid only for the settings it was trained with
+    (its feature schema is :meth:`feature_names`)."""
+
+    proposal_mode: str = "threshold"
+    iou_threshold: float = 0.5             # threshold mode: BEV IoU > t puts a proposal in the set
+    proposal_score_threshold: float = 0.0  # threshold mode: proposals scoring <= this are ignored
+    nms_iou_threshold: float = 0.1         # exact mode: NMS run here (reference detector: 0.1)
+    nms_score_threshold: float = 0.1       # exact mode: proposals below are not NMS input
+    class_names: tuple = ("car", "truck", "pedestrian", "cyclist")
+    #: Append the detector's per-class scores (``class_score_<name>``, in ``class_names``
+    #: order) to the paper's features (features module: optional extras).
+    class_score_features: bool = False
+
+    def feature_names(self) -> tuple[str, ...]:
+        return features.feature_names(self.proposal_mode,
+                                      self.class_names if self.class_score_features else None)
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming the first bad setting."""
+        if self.proposal_mode not in MODES:
+            raise ValueError(f"proposal_mode must be one of {MODES}, got {self.proposal_mode!r}")
+        if not 0.0 <= self.iou_threshold < 1.0:
+            raise ValueError(f"iou_threshold must be in [0, 1), got {self.iou_threshold}")
+        if not math.isfinite(self.proposal_score_threshold):
+            raise ValueError(f"proposal_score_threshold must be finite, got "
+                             f"{self.proposal_score_threshold}")
+        if not 0.0 <= self.nms_iou_threshold <= 1.0:
+            raise ValueError(f"nms_iou_threshold must be in [0, 1], got {self.nms_iou_threshold}")
+        if not math.isfinite(self.nms_score_threshold):
+            raise ValueError(f"nms_score_threshold must be finite, got {self.nms_score_threshold}")
+        names = tuple(self.class_names)
+        if not names or not all(isinstance(c, str) and c for c in names):
+            raise ValueError(f"class_names must be non-empty strings, got {list(names)}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"class_names has duplicates: {list(names)}")
+
+
+def default_model_paths(mode: str) -> tuple[Path, Path]:
+    """(classifier, regressor) shipped for ``mode``: ``models_dir()/lmd/lmd_<mode>_*.joblib``."""
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    d = models_dir() / "lmd"
+    return d / f"lmd_{mode}_classifier.joblib", d / f"lmd_{mode}_regressor.joblib"
+
+
+@dataclass
+class LmdFrame:
+    """Features of one frame, row ``i`` = box ``i`` of ``detections`` = detection
+    ``rows[i]`` of ``source`` (the input detections, or the proposals in exact mode)."""
+
+    detections: DetectionArrays  # the boxes scored, in output order
+    messages: list | None        # their Detection3D messages (None for decoded bytes input)
+    features: np.ndarray         # (n, F) float64, all-NaN rows for invalid boxes
+    valid: np.ndarray            # (n,) bool
+    n_points: int                # finite points used (|X|)
+    header: object = None        # header of the scored boxes' array (output header)
+    source: object = None        # Detection3DArray or DecodedDetections they come from
+    rows: np.ndarray | None = None  # (n,) their rows in ``source``
+
+
+def take_detections(arr: DetectionArrays, idx) -> DetectionArrays:
+    """Rows ``idx`` of ``arr`` (in that order)."""
+    idx = np.asarray(idx, dtype=np.int64).reshape(-1)
+    pick = idx.tolist()
+    return DetectionArrays(
+        boxes=arr.boxes[idx], scores=arr.scores[idx], labels=[arr.labels[i] for i in pick],
+        ids=[arr.ids[i] for i in pick], roll_pitch=arr.roll_pitch[idx], valid=arr.valid[idx],
+        reasons=[arr.reasons[i] for i in pick],
+        class_scores={c: v[idx] for c, v in arr.class_scores.items()})
+
+
+def _mark_unknown_classes(arr: DetectionArrays, class_names) -> DetectionArrays:
+    """``arr`` with detections of a class outside ``class_names`` made invalid (a copy
+    where anything changes: the input's arrays stay as decoded)."""
+    known = set(class_names)
+    bad = [i for i, lab in enumerate(arr.labels) if arr.valid[i] and lab not in known]
+    if not bad:
+        return arr
+    arr = replace(arr, valid=arr.valid.copy(), reasons=list(arr.reasons))
+    for i in bad:
+        arr.valid[i] = False
+        arr.reasons[i] = f"unknown class {arr.labels[i]!r}"
+    return arr
+
+
+def _n_finite(xyz: np.ndarray, inten: np.ndarray) -> int:
+    # A finite sum proves every value finite (the common case, one pass per array).
+    if np.isfinite(np.sum(xyz)) and np.isfinite(np.sum(inten)):
+        return len(xyz)
+    ok = np.isfinite(inten)
+    for c in range(3):
+        ok &= np.isfinite(xyz[:, c])
+    return int(np.count_nonzero(ok))
+
+
+def _exact_nms(props: DetectionArrays, settings: LmdSettings):
+    """(keep, suppressed_by) over all proposals; invalid ones take no part."""
+    sel = np.flatnonzero(props.valid)
+    res = rotated_nms(props.boxes[sel], props.scores[sel], settings.nms_iou_threshold,
+                      score_threshold=settings.nms_score_threshold)
+    sup = np.full(len(props), -1, dtype=np.int64)
+    sub = res.suppressed_by
+    sup[sel[sub >= 0]] = sel[sub[sub >= 0]]
+    return sel[res.keep], sup
+
+
+def _arrays(dets) -> DetectionArrays:
+    return dets.arrays if isinstance(dets, DecodedDetections) else detections_to_arrays(dets)
+
+
+def _messages(dets, rows) -> list | None:
+    if isinstance(dets, DecodedDetections):
+        return None
+    msgs = dets.detections
+    return [msgs[i] for i in rows.tolist()]
+
+
+def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettings) -> LmdFrame:
+    """Features of one frame from its messages (PointCloud2, Detection3DArray,
+    Detection3DArray; the two arrays may also come as ``detection_cdr.DecodedDetections``).
+    ``detections_msg`` is unused (may be None) in exact mode, ``proposals_msg`` is None in
+    none mode.
+
+    Raises ``CloudFormatError`` for a malformed cloud or one without intensity,
+    ``ValueError`` for a missing input of the mode.
+    """
+    mode = settings.proposal_mode
+    if mode not in MODES:
+        raise ValueError(f"proposal_mode must be one of {MODES}, got {mode!r}")
+    xyz, inten = xyz_intensity(cloud_msg)
+    if inten is None:
+        raise CloudFormatError("cloud has no intensity field (intensity / reflectance / i): "
+                               "the reflectance features need it")
+    if mode != "none" and proposals_msg is None:
+        raise ValueError(f'proposal mode "{mode}" needs the proposals')
+    props = _arrays(proposals_msg) if mode != "none" else None
+    if mode == "exact":
+        keep, sup = _exact_nms(props, settings)
+        dets = take_detections(props, keep)
+        source, rows = proposals_msg, keep
+        kw = dict(preimage=features.ProposalSets.from_nms(sup, keep))
+    else:
+        if detections_msg is None:
+            raise ValueError(f'proposal mode "{mode}" needs the detections')
+        dets = _arrays(detections_msg)
+        source, rows = detections_msg, np.arange(len(dets))
+        kw = (dict(iou_threshold=settings.iou_threshold,
+                   proposal_score_threshold=settings.proposal_score_threshold)
+              if mode == "threshold" else {})
+    dets = _mark_unknown_classes(dets, settings.class_names)
+    extra = None
+    if settings.class_score_features:
+        nan = np.full(len(dets), np.nan)
+        extra = np.column_stack([dets.class_scores.get(c, nan) for c in settings.class_names]
+                                ) if len(dets) else np.zeros((0, len(settings.class_names)))
+    X = features.compute_features(
+        xyz, inten, dets.boxes, dets.scores, dets.labels,
+        proposals=None if props is None else (props.boxes, props.scores),
+        mode=mode, class_names=settings.class_names, class_scores=extra, **kw)
+    valid = dets.valid.copy()
+    X[~valid] = np.nan
+    return LmdFrame(dets, _messages(source, rows), X, valid, _n_finite(xyz, inten),
+                    source.header, source, rows)
+
+
+@dataclass
+class LmdOutputs:
+    """What one frame publishes, plus the input problems the node reports."""
+
+    frame: LmdFrame
+    confidence: np.ndarray     # (n,) NaN for invalid boxes
+    predicted_iou: np.ndarray  # (n,)
+    kept: np.ndarray           # (n,) bool: published on output/detections
+    detections: object         # Detection3DArray, or its serialized bytes for decoded input
+    quality: object            # DetectionQualityArray (every scored box, kept or not)
+    markers: object = None     # MarkerArray, or None when not asked for
+    #: input problems by key (``"detections"``, ``"frame_id"``); absent key = no problem
+    issues: dict = field(default_factory=dict)
+
+
+class LmdProcessor:
+    """The node's frame work without ROS: decode, features, meta models, output messages.
+
+    ``models``: a ``MetaModels`` loaded with ``settings.feature_names()``.
+    ``min_confidence``: detections with a confidence below it (or NaN, when > 0) are not
+    published on output/detections; 0 keeps all.
+    """
+
+    def __init__(self, settings: LmdSettings, models, *, min_confidence: float = 0.0):
+        settings.validate()
+        if tuple(models.feature_names) != settings.feature_names():
+            raise ValueError("models were loaded for another feature schema than the settings'")
+        if not 0.0 <= min_confidence <= 1.0:
+            raise ValueError(f"min_confidence must be in [0, 1], got {min_confidence}")
+        self.settings = settings
+        self.models = models
+        self.min_confidence = float(min_confidence)
+        from lidar_quality_msgs.msg import DetectionQuality, DetectionQualityArray
+        from vision_msgs.msg import Detection3DArray
+        self._Quality, self._QualityArray = DetectionQuality, DetectionQualityArray
+        self._DetArray = Detection3DArray
+
+    def process(self, cloud, detections, proposals, *, markers: bool = False) -> LmdOutputs:
+        """One frame (``detections`` None in exact mode, ``proposals`` None in none mode).
+
+        Re-scoring (``detection_cdr.rescaled_scores``): every hypothesis score of a
+        detection is scaled so that its top one equals the meta confidence. Decoded
+        (``DecodedDetections``) input gives serialized output bytes, every field copied;
+        message input is re-scored in place (the node owns its input messages) and
+        republished. Raises ``CloudFormatError`` for a bad cloud (the frame is dropped);
+        bad boxes never raise.
+        """
+        frame = frame_features(cloud, detections, proposals, self.settings)
+        conf, iou = self.models.predict(frame.features)
+        n = len(frame.detections)
+        kept = (conf >= self.min_confidence) if self.min_confidence > 0 else np.ones(n, bool)
+        header = frame.header
+        dets = frame.detections
+        src = frame.source
+        if isinstance(src, DecodedDetections):
+            conf_src = np.full(len(src), np.nan)
+            conf_src[frame.rows] = conf
+            new = rescaled_scores(src.hyp_score, src.hyp_det, conf_src)
+            det_msg = encode_detection_array(src, frame.rows[kept], new)
+        else:
+            hyps = [r.hypothesis for m in frame.messages for r in m.results]
+            owner = np.repeat(np.arange(n), [len(m.results) for m in frame.messages])
+            new = rescaled_scores([h.score for h in hyps], owner, conf)
+            for h, v in zip(hyps, new.tolist()):
+                h.score = v
+            det_msg = self._DetArray(header=header, detections=[
+                m for m, k in zip(frame.messages, kept.tolist()) if k])
+        Q = self._Quality
+        quality = self._QualityArray(
+            header=header, confidence_model_id=self.models.confidence_model_id,
+            iou_model_id=self.models.iou_model_id,
+            detections=[Q(detection_index=i, detection_id=dets.ids[i], class_id=dets.labels[i],
+                          original_score=s, confidence=c, predicted_iou=u)
+                        for i, (s, c, u) in enumerate(zip(dets.scores.tolist(), conf.tolist(),
+                                                          iou.tolist()))])
+        mk = self.markers(frame, conf, iou, kept) if markers else None
+        issues = {}
+        if not frame.valid.all():
+            bad = [f"#{i} {dets.ids[i]!r}: {dets.reasons[i]}"
+                   for i in np.flatnonzero(~frame.valid).tolist()]
+            issues["detections"] = (f"{len(bad)} invalid detection(s) kept with NaN confidence: "
+                                    + ", ".join(bad[:5]) + (" ..." if len(bad) > 5 else ""))
+        mismatch = frame_id_mismatch(cloud, detections, proposals)
+        if mismatch:
+            issues["frame_id"] = mismatch
+        return LmdOutputs(frame, conf, iou, kept, det_msg, quality, mk, issues)
+
+    def markers(self, frame: LmdFrame, conf, iou, kept):
+        """Boxes of the published detections coloured by confidence, labelled
+        ``"<class> c=0.87 iou=0.62"``."""
+        from lidar_quality_ros.markers import box_markers
+
+        idx = np.flatnonzero(kept)
+        labels = frame.detections.labels
+        texts = [f"{labels[i]} c={conf[i]:.2f} iou={iou[i]:.2f}" for i in idx.tolist()]
+        return box_markers(frame.header, frame.detections.boxes[idx], conf[idx], texts,
+                           ns="lmd")
+
+
+def frame_id_mismatch(cloud, detections, proposals) -> str | None:
+    """A message when the inputs name different frames (None when they agree)."""
+    ids = {"input/points": cloud.header.frame_id}
+    if detections is not None:
+        ids["input/detections"] = detections.header.frame_id
+    if proposals is not None:
+        ids["input/proposals"] = proposals.header.frame_id
+    if len(set(ids.values())) <= 1:
+        return None
+    return ("frame_id mismatch (processed as if equal): "
+            + ", ".join(f"{t} {f!r}" for t, f in ids.items()))

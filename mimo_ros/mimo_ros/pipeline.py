@@ -1,0 +1,492 @@
+"""LiDAR-MIMO frame pipeline: head messages -> merged detections, cluster features, meta
+confidence / predicted IoU and the output messages (no rclpy; message classes only).
+
+``mimo_node`` is a shell around :func:`process_frame`; the offline dataset / evaluation
+code computes its features with :func:`frame_features` on the same messages, so offline
+features are the online ones.
+
+Conversions and conventions:
+
+* Head messages (``vision_msgs/Detection3DArray``, the reference perception's convention):
+  one ``results`` hypothesis per foreground class, ``score`` = its probability. The class
+  distribution of a box has columns ``[background] + class_names`` (``background_index``
+  0): a class without a hypothesis has probability 0, hypotheses of classes not in
+  ``class_names`` are ignored, background = clip(1 - sum of the foreground probabilities,
+  0, 1). ``merge_heads`` takes them with ``score_type="probabilities"`` (logits =
+  log(max(p, 1e-12)), then softmax, which renormalises rows that do not sum to 1).
+* A head box is left out of the clustering (``merge_heads`` noise, reported in
+  ``MimoFrame.issues``) when ``detections_to_arrays`` flags it (non-finite centre / size /
+  orientation, a size <= 0, no hypothesis, a non-finite score), when it has no hypothesis
+  of a known class, or when a known-class score lies outside [0, 1].
+* Predicted variances (``BoxVarianceArray``, optional): row ``detection_index`` of the
+  head; an entry whose ``detection_id`` is set and differs from the detection's id, whose
+  index is out of range, or whose values are negative / non-finite is ignored (NaN,
+  reported). No variance message: all variances NaN, so the aleatoric variances, ATV and
+  the predictive variances are NaN (the epistemic ones are not).
+* Missing heads (``None`` in the head list: a head that stopped publishing, see
+  :class:`InputLiveness`): the frame is merged over the heads present, and the voting
+  rule uses K = their number (consensus of 2 heads needs 2 votes; with one head left, 1).
+* Merged detection ids: ``"<head>:<id>"`` of the cluster's top (highest-confidence) member.
+"""
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+import numpy as np
+
+from lidar_quality_core.boxes import DetectionArrays, arrays_to_detections, detections_to_arrays
+from lidar_quality_core.detection_cdr import encode_detections
+from lidar_quality_core.model_store import models_dir
+
+from .merging import HeadDetections, MergeConfig, MergeResult, merge_heads
+from .uncertainty import BOX_PARAMS
+
+__all__ = ["DEFAULT_CLASS_NAMES", "STAT_FEATURES", "POINT_FEATURES", "MimoSettings",
+           "head_detections", "MimoFrame", "frame_features", "default_model_paths",
+           "MimoOutput", "process_frame", "output_messages", "InputLiveness", "Arrival"]
+
+DEFAULT_CLASS_NAMES = ("car", "truck", "pedestrian", "cyclist")
+#: Cluster statistics of a merged detection (``feature_names`` order).
+STAT_FEATURES = (("cluster_size", "head_fraction", "shannon_entropy", "aleatoric_entropy",
+                  "mutual_information", "epistemic_total_variance", "aleatoric_total_variance")
+                 + tuple(f"epistemic_var_{p}" for p in BOX_PARAMS)
+                 + tuple(f"aleatoric_var_{p}" for p in BOX_PARAMS)
+                 + ("score", "class", "distance"))
+#: LMD own-box point features of the merged box (``lmd_ros.features``, mode "none").
+POINT_FEATURES = ("points", "points_frac", "refl_max", "refl_mean", "refl_std")
+_MODEL_PREFIX = {False: "mimo", True: "mimo_points"}
+
+
+@dataclass(frozen=True)
+class MimoSettings:
+    """What turns K head messages into merged detections and their feature rows.
+
+    Features (``feature_names``): ``cluster_size`` (members, may exceed K), ``head_fraction``
+    (distinct heads among the members / heads of the frame), SE, AE, MI [bit], ETV, ATV,
+    the epistemic (between-member) and aleatoric (mean predicted) variance of each box
+    parameter, the merged ``score`` (probability of the merged label), ``class`` (index
+    into ``class_names``), ``distance`` (BEV range of the merged centre [m]); with
+    ``use_points`` also the LMD own-box point features of the merged box.
+    """
+
+    num_heads: int = 2
+    merge: MergeConfig = MergeConfig(score_type="probabilities", background_index=0)
+    use_points: bool = False
+    class_names: tuple = DEFAULT_CLASS_NAMES
+
+    def feature_names(self) -> tuple[str, ...]:
+        return STAT_FEATURES + (POINT_FEATURES if self.use_points else ())
+
+    def validate(self) -> None:
+        """Raise ``ValueError`` naming what is wrong."""
+        if not isinstance(self.num_heads, (int, np.integer)) or self.num_heads < 1:
+            raise ValueError(f"num_heads must be an integer >= 1, got {self.num_heads!r}")
+        if self.merge.score_type != "probabilities" or self.merge.background_index != 0:
+            raise ValueError("merge must take probabilities with the background in column 0 "
+                             "(score_type='probabilities', background_index=0): that is what "
+                             "head_detections builds from the messages")
+        names = tuple(self.class_names)
+        if not names or not all(isinstance(c, str) and c for c in names):
+            raise ValueError(f"class_names must be non-empty strings, got {names!r}")
+        if len(set(names)) != len(names):
+            raise ValueError(f"class_names has duplicates: {names!r}")
+
+
+def default_model_paths(use_points: bool = False) -> tuple[Path, Path]:
+    """Shipped classifier and regressor: ``models_dir()/mimo/<prefix>_{classifier,
+    regressor}.joblib`` with prefix ``mimo`` (cluster statistics) or ``mimo_points``."""
+    prefix = _MODEL_PREFIX[bool(use_points)]
+    d = models_dir() / "mimo"
+    return d / f"{prefix}_classifier.joblib", d / f"{prefix}_regressor.joblib"
+
+
+# ------------------------------------------------------------------ decoding
+def _class_probabilities(arrays: DetectionArrays, class_names):
+    """``(probs (n, 1 + C) with background column 0, has a known class (n,), all known
+    scores in [0, 1] (n,))`` (module docstring)."""
+    n = len(arrays)
+    fg = np.zeros((n, len(class_names)))
+    known = np.zeros(n, bool)
+    for c, name in enumerate(class_names):
+        s = arrays.class_scores.get(name)
+        if s is not None:
+            have = ~np.isnan(s)
+            known |= have
+            fg[have, c] = s[have]
+    with np.errstate(invalid="ignore"):
+        in_range = ((fg >= 0.0) & (fg <= 1.0)).all(axis=1)
+    probs = np.empty((n, 1 + len(class_names)))
+    probs[:, 1:] = fg
+    probs[:, 0] = np.clip(1.0 - fg.sum(axis=1), 0.0, 1.0)
+    return probs, known, in_range
+
+
+def _variances(msg, arrays: DetectionArrays, issues: list | None) -> np.ndarray:
+    n = len(arrays)
+    var = np.full((n, 7), np.nan)
+    if msg is None:
+        return var
+    bad = 0
+    rows = []
+    for v in msg.variances:
+        i = v.detection_index
+        if i >= n or (v.detection_id and v.detection_id != arrays.ids[i]):
+            bad += 1
+            continue
+        rows.append((i, v.x, v.y, v.z, v.length, v.width, v.height, v.yaw))
+    if rows:
+        r = np.array(rows, dtype=np.float64)
+        vals = r[:, 1:]
+        with np.errstate(invalid="ignore"):
+            ok = np.isfinite(vals) & (vals >= 0.0)
+        bad += int((~ok.all(axis=1)).sum())
+        var[r[:, 0].astype(np.intp)] = np.where(ok, vals, np.nan)
+    if len(msg.variances) != n:
+        _note(issues, f"{len(msg.variances)} variances for {n} detections")
+    if bad:
+        _note(issues, f"{bad} variance entr{'y' if bad == 1 else 'ies'} ignored (index / id "
+                      "mismatch, negative or non-finite)")
+    return var
+
+
+def _note(issues, text):
+    if issues is not None:
+        issues.append(text)
+
+
+def _arrays(det_msg) -> DetectionArrays:
+    if isinstance(det_msg, DetectionArrays):
+        return det_msg
+    decoded = getattr(det_msg, "arrays", None)
+    return decoded if isinstance(decoded, DetectionArrays) else detections_to_arrays(det_msg)
+
+
+def head_detections(det_msg, variance_msg, settings: MimoSettings = MimoSettings(), *,
+                    issues: list | None = None) -> tuple[HeadDetections, DetectionArrays]:
+    """One head's ``HeadDetections`` (class scores = probabilities, background column 0)
+    and the decoded arrays of its message. ``det_msg``: a Detection3DArray, or its
+    ``DetectionArrays`` already decoded (also anything with such an ``arrays`` attribute,
+    e.g. ``detection_cdr.DecodedDetections``). Unusable boxes get NaN class scores, so
+    ``merge_heads`` leaves them out; what was wrong is appended to ``issues``."""
+    arrays = _arrays(det_msg)
+    probs, known, in_range = _class_probabilities(arrays, settings.class_names)
+    usable = arrays.valid & known & in_range
+    if not usable.all():
+        probs[~usable] = np.nan
+        if issues is not None:
+            bad = np.flatnonzero(~usable)
+            why = [arrays.reasons[i] or ("no hypothesis of a known class" if not known[i]
+                                         else "class score outside [0, 1]") for i in bad[:5]]
+            issues.append(f"{len(bad)} unusable box(es): " + ", ".join(
+                f"#{i}: {w}" for i, w in zip(bad, why)))
+    var = _variances(variance_msg, arrays, issues)
+    return HeadDetections(arrays.boxes, probs, var), arrays
+
+
+# ------------------------------------------------------------------ features
+@dataclass
+class MimoFrame:
+    """One frame: the merge result, its feature rows and where the members came from."""
+
+    merge: MergeResult
+    features: np.ndarray                 # (C, F) float64, settings.feature_names() order
+    heads_used: list[int]                # head indices present (merge head j = heads_used[j])
+    arrays: list[DetectionArrays] = field(default_factory=list)  # per used head
+    issues: list[str] = field(default_factory=list)              # input problems seen
+    class_names: tuple = DEFAULT_CLASS_NAMES                      # foreground columns 1..
+
+    def __len__(self) -> int:
+        return len(self.merge)
+
+    def top_heads(self) -> np.ndarray:
+        """Head index (of the K inputs) of each merged detection's top member."""
+        m = self.merge
+        return np.asarray(self.heads_used, np.intp)[m.member_head[m.top_member]]
+
+    def merged_ids(self) -> list[str]:
+        """``"<head>:<id>"`` of each merged detection's top member."""
+        m = self.merge
+        heads = m.member_head[m.top_member].tolist()
+        rows = m.member_index[m.top_member].tolist()
+        return [f"{self.heads_used[h]}:{self.arrays[h].ids[r]}" for h, r in zip(heads, rows)]
+
+    def class_labels(self) -> list[str]:
+        """Class name of each merged detection."""
+        return [self.class_names[c - 1] for c in self.merge.labels.tolist()]
+
+
+def _decode_cloud(cloud):
+    """``(xyz, intensity or None)`` of a PointCloud2 or an ``(xyz, intensity)`` pair."""
+    if isinstance(cloud, tuple):
+        return cloud
+    from lidar_quality_core.pointcloud import xyz_intensity
+
+    return xyz_intensity(cloud)
+
+
+def _point_features(cloud, merge: MergeResult) -> np.ndarray:
+    from lmd_ros.features import OWN_QUANTITIES, compute_features
+
+    cols = [OWN_QUANTITIES.index(n) for n in POINT_FEATURES]
+    out = np.full((len(merge), len(POINT_FEATURES)), np.nan)
+    if cloud is None or not len(merge):
+        return out
+    xyz, inten = _decode_cloud(cloud)
+    no_intensity = inten is None
+    if no_intensity:  # counts stay valid; reflectance statistics unknown (NaN below)
+        inten = np.zeros(len(xyz), np.float32)
+    f = compute_features(xyz, inten, merge.boxes, merge.scores, merge.labels - 1, mode="none")
+    out[:] = f[:, cols]
+    if no_intensity:
+        out[:, 2:] = np.nan
+    return out
+
+
+def _head_fraction(merge: MergeResult, k_used: int) -> np.ndarray:
+    """Distinct heads among each cluster's members / heads of the frame."""
+    c = merge.member_cluster
+    m = c >= 0
+    pairs = np.unique(c[m] * max(k_used, 1) + merge.member_head[m])
+    return np.bincount(pairs // max(k_used, 1), minlength=len(merge)) / max(k_used, 1)
+
+
+def cluster_features(merge: MergeResult, settings: MimoSettings, k_used: int,
+                     cloud=None) -> np.ndarray:
+    """(C, F) feature rows of a merge result (``settings.feature_names()`` order)."""
+    st = merge.stats
+    C = len(merge)
+    out = np.empty((C, len(settings.feature_names())))
+    out[:, 0] = st.cluster_size
+    out[:, 1] = _head_fraction(merge, k_used)
+    out[:, 2] = st.shannon_entropy
+    out[:, 3] = st.aleatoric_entropy
+    out[:, 4] = st.mutual_information
+    out[:, 5] = st.epistemic_total_variance
+    out[:, 6] = st.aleatoric_total_variance
+    out[:, 7:14] = st.epistemic_variance
+    out[:, 14:21] = st.aleatoric_variance
+    out[:, 21] = merge.scores
+    out[:, 22] = merge.labels - 1  # column 0 is the background
+    out[:, 23] = np.hypot(merge.boxes[:, 0], merge.boxes[:, 1])
+    if settings.use_points:
+        out[:, len(STAT_FEATURES):] = _point_features(cloud, merge)
+    return out
+
+
+def frame_features(head_msgs: Sequence, variance_msgs: Sequence | None = None,
+                   settings: MimoSettings = MimoSettings(), cloud_msg=None) -> MimoFrame:
+    """Decode the heads of one frame (``None``: head missing), merge them and compute the
+    features. ``variance_msgs``: one ``BoxVarianceArray`` or ``None`` per head (or None).
+    ``cloud_msg``: a PointCloud2 or ``(xyz, intensity)``, used when ``settings.use_points``
+    (None there: the point features are NaN). Raises ``ValueError`` without any head."""
+    if len(head_msgs) != settings.num_heads:
+        raise ValueError(f"{len(head_msgs)} head messages for num_heads={settings.num_heads}")
+    if variance_msgs is None:
+        variance_msgs = [None] * len(head_msgs)
+    elif len(variance_msgs) != len(head_msgs):
+        raise ValueError(f"{len(variance_msgs)} variance messages for {len(head_msgs)} heads")
+    used = [k for k, m in enumerate(head_msgs) if m is not None]
+    if not used:
+        raise ValueError("no head message in this frame")
+    issues: list[str] = []
+    heads, arrays = [], []
+    for k in used:
+        mine: list[str] = []
+        h, a = head_detections(head_msgs[k], variance_msgs[k], settings, issues=mine)
+        heads.append(h)
+        arrays.append(a)
+        issues += [f"head {k}: {t}" for t in mine]
+    merge = merge_heads(heads, settings.merge, num_heads=len(used))
+    return MimoFrame(merge, cluster_features(merge, settings, len(used), cloud_msg), used,
+                     arrays, issues, tuple(settings.class_names))
+
+
+# ------------------------------------------------------------------ outputs
+@dataclass
+class MimoOutput:
+    """Everything the node publishes for one frame (markers aside)."""
+
+    frame: MimoFrame
+    confidence: np.ndarray        # (C,) meta confidence
+    predicted_iou: np.ndarray     # (C,)
+    detections: object            # vision_msgs/Detection3DArray (or its CDR bytes)
+    uncertainty: object           # lidar_quality_msgs/ClusterUncertaintyArray
+
+
+def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
+                    scores: str = "confidence", confidence_model_id: str = "",
+                    iou_model_id: str = "", serialized: bool = False):
+    """``(Detection3DArray, ClusterUncertaintyArray)`` of the merged detections; with
+    ``serialized`` the detections as CDR bytes (``detection_cdr.encode_detections``, the
+    same message; a publisher takes them as they are, ~5x cheaper than building and
+    serializing the message objects).
+
+    Detections: mean box (yaw of the top member), id ``"<head>:<id>"``, one hypothesis
+    per foreground class, highest first, pose covariance diagonal = predictive variance of
+    x, y, z and yaw (roll, pitch 0). ``scores="confidence"``: the merged class distribution
+    scaled by confidence / p(label), so the top hypothesis carries the meta confidence and
+    the ratios between classes are the merged distribution's (NaN confidence: unscaled);
+    ``"merged"``: the merged distribution as it is. Where the heads' predicted variances
+    are unknown (no variance input) the covariance is the epistemic variance alone, a lower
+    bound (ATV in the uncertainty message is then NaN).
+    """
+    from lidar_quality_msgs.msg import ClusterUncertainty, ClusterUncertaintyArray
+
+    m = frame.merge
+    names = frame.class_names
+    conf = np.asarray(confidence, np.float64).reshape(-1)
+    iou = np.asarray(predicted_iou, np.float64).reshape(-1)
+    if len(conf) != len(m) or len(iou) != len(m):
+        raise ValueError(f"{len(conf)} confidences / {len(iou)} IoUs for {len(m)} detections")
+    fg = m.class_probs[:, 1:]
+    if scores == "confidence":
+        with np.errstate(invalid="ignore", divide="ignore"):
+            scale = np.where(np.isfinite(conf) & (m.scores > 0), conf / m.scores, 1.0)
+        fg = fg * scale[:, None]
+    elif scores != "merged":
+        raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
+    st = m.stats
+    pred = st.predictive_variance
+    cov = np.zeros((len(m), 6))
+    xyzyaw = [0, 1, 2, 6]
+    cov[:, [0, 1, 2, 5]] = np.where(np.isnan(pred[:, xyzyaw]), st.epistemic_variance[:, xyzyaw],
+                                    pred[:, xyzyaw])
+    ids = frame.merged_ids()
+    labels = frame.class_labels()
+    if serialized:
+        dets = encode_detections(header, m.boxes, names, fg, ids=ids, covariance_diagonal=cov)
+    else:
+        dets = arrays_to_detections(header, m.boxes, labels, m.scores, ids=ids,
+                                    class_scores={n: fg[:, c] for c, n in enumerate(names)},
+                                    covariance_diagonal=cov)
+    size = st.cluster_size.tolist()
+    se, ae, mi = (st.shannon_entropy.tolist(), st.aleatoric_entropy.tolist(),
+                  st.mutual_information.tolist())
+    etv, atv = st.epistemic_total_variance.tolist(), st.aleatoric_total_variance.tolist()
+    cl, il = conf.tolist(), iou.tolist()
+    unc = ClusterUncertaintyArray(header=header, confidence_model_id=confidence_model_id,
+                                  iou_model_id=iou_model_id)
+    unc.clusters = [ClusterUncertainty(detection_index=i, detection_id=ids[i],
+                                       class_id=labels[i], cluster_size=size[i],
+                                       shannon_entropy=se[i], aleatoric_entropy=ae[i],
+                                       mutual_information=mi[i],
+                                       epistemic_total_variance=etv[i],
+                                       aleatoric_total_variance=atv[i], confidence=cl[i],
+                                       predicted_iou=il[i])
+                    for i in range(len(m))]
+    return dets, unc
+
+
+def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, models, *,
+                  cloud_msg=None, scores: str = "confidence",
+                  serialized: bool = False) -> MimoOutput:
+    """The node's work for one frame, decode to output messages: ``frame_features``,
+    ``models.predict`` (a ``MetaModels``), ``output_messages`` (``serialized``: the
+    detections as bytes)."""
+    frame = frame_features(head_msgs, variance_msgs, settings, cloud_msg)
+    conf, iou = models.predict(frame.features)
+    dets, unc = output_messages(header, frame, conf, iou, scores=scores,
+                                confidence_model_id=models.confidence_model_id,
+                                iou_model_id=models.iou_model_id, serialized=serialized)
+    return MimoOutput(frame, conf, iou, dets, unc)
+
+
+# ------------------------------------------------------------------ head fallback
+@dataclass
+class Arrival:
+    """What one arrival changed: placeholders ``(input, stamp_ns)`` to add for stopped
+    inputs (oldest first), inputs that were just declared stopped, and ones that resumed."""
+
+    placeholders: list[tuple[int, int]] = field(default_factory=list)
+    stopped: list[int] = field(default_factory=list)
+    resumed: list[int] = field(default_factory=list)
+
+
+class InputLiveness:
+    """Which inputs of a stamp-synchronised set still publish, and the placeholders that
+    let the others' frames through without them.
+
+    Time is stamp time: an input is *stopped* once the newest stamp seen on any input is
+    more than ``timeout_ns`` ahead of its own newest stamp (or of the first stamp seen, if
+    it never sent anything). This is deterministic, works with replayed bags and sim time,
+    and needs no timer: nothing is declared stopped while no input arrives at all. From
+    then on every stamp seen on a live input (and not yet matched) gets a placeholder for
+    each stopped input, so the synchroniser completes the set with ``None`` in that slot;
+    when the stopped input declares itself stopped, the stamps still waiting in the queues
+    get theirs at once (oldest first), so those frames come out too. A message of a stopped
+    input makes it live again (recovery); a placeholder already used for its stamp makes
+    that message late (counted by the synchroniser). Stamps jumping back by more than
+    ``reset_ns`` (a looped bag) forget everything (all inputs live). In approximate mode a
+    placeholder is added only if its stamp is more than ``slop_ns`` after the previous one
+    of that input, so one frame gets one placeholder. Thread-safe.
+    """
+
+    def __init__(self, n_inputs: int, timeout_ns: int, *, slop_ns: int = 0,
+                 window: int = 64, reset_ns: int = 1_000_000_000):
+        if n_inputs < 1 or timeout_ns <= 0:
+            raise ValueError(f"need n_inputs >= 1 and timeout_ns > 0, got {n_inputs}, {timeout_ns}")
+        self.n, self.timeout_ns, self.slop_ns = int(n_inputs), int(timeout_ns), int(slop_ns)
+        self.window, self.reset_ns = int(window), int(reset_ns)
+        self.lock = threading.Lock()
+        self._reset()
+
+    def _reset(self) -> None:
+        self._newest: list[int | None] = [None] * self.n
+        self._first: int | None = None
+        self._stopped: set[int] = set()
+        self._last_placeholder: list[int | None] = [None] * self.n
+        self._pending: list[int] = []  # recent distinct stamps of live inputs, sorted
+
+    @property
+    def stopped(self) -> list[int]:
+        with self.lock:
+            return sorted(self._stopped)
+
+    def arrival(self, index: int, stamp_ns: int, last_matched_ns: int | None = None) -> Arrival:
+        """Input ``index`` delivered a message stamped ``stamp_ns``; ``last_matched_ns`` is
+        the synchroniser's last emitted stamp (placeholders at or before it would be late)."""
+        with self.lock:
+            return self._arrival(index, stamp_ns, last_matched_ns)
+
+    def _arrival(self, i, t, last_matched):
+        out = Arrival()
+        seen = [s for s in self._newest if s is not None]
+        if seen and t < max(seen) - self.reset_ns:
+            out.resumed = sorted(self._stopped)
+            self._reset()
+        if self._first is None:
+            self._first = t
+        if self._newest[i] is None or t > self._newest[i]:
+            self._newest[i] = t
+        if i in self._stopped:
+            self._stopped.discard(i)
+            self._last_placeholder[i] = None
+            out.resumed.append(i)
+        # the stamp waits for its set: remember it for inputs that stop later
+        p = self._pending
+        if t not in p:
+            p.append(t)
+            p.sort()
+            del p[:-self.window]
+        if last_matched is not None:
+            del p[:sum(1 for s in p if s <= last_matched)]
+        now = max(s for s in self._newest if s is not None)
+        for j in range(self.n):
+            if j != i and j not in self._stopped:
+                ref = self._newest[j] if self._newest[j] is not None else self._first
+                if now - ref > self.timeout_ns:
+                    self._stopped.add(j)
+                    out.stopped.append(j)
+        for j in sorted(self._stopped):
+            last = self._last_placeholder[j]
+            for s in p:
+                if (last is None or s > last + self.slop_ns) and (
+                        last_matched is None or s > last_matched):
+                    out.placeholders.append((j, s))
+                    last = s
+            self._last_placeholder[j] = last
+        out.placeholders.sort(key=lambda js: js[1])
+        return out

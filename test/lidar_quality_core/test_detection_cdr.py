@@ -1,0 +1,174 @@
+"""detection_cdr: decoding equals rclpy deserialization + detections_to_arrays; encoding is
+what rclpy serializes for the same message (subset, new scores); bad bytes refused."""
+import math
+
+import numpy as np
+import pytest
+from lidar_quality_core.boxes import detections_to_arrays
+from lidar_quality_core.detection_cdr import (CdrError, decode_detection_array,
+                                              encode_detection_array, rescaled_scores)
+from rclpy.serialization import deserialize_message, serialize_message
+from std_msgs.msg import Header
+from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesisWithPose
+
+
+def random_array(seed, n=7):
+    """Detections with varied string lengths (every alignment), 0..4 hypotheses, random
+    poses and covariances, a NaN box and non-ASCII ids."""
+    rng = np.random.default_rng(seed)
+    h = Header(frame_id="f" * int(rng.integers(0, 9)))
+    h.stamp.sec, h.stamp.nanosec = int(rng.integers(-5, 2**31 - 1)), int(rng.integers(0, 10**9))
+    dets = []
+    for i in range(n):
+        d = Detection3D(id="é" * int(rng.integers(0, 5)) + "x" * int(rng.integers(0, 7)))
+        d.header.frame_id = "g" * int(rng.integers(0, 6))
+        d.header.stamp.sec = i
+        c, s = d.bbox.center, d.bbox.size
+        c.position.x, c.position.y, c.position.z = rng.normal(size=3).tolist()
+        q = rng.normal(size=4)
+        c.orientation.x, c.orientation.y, c.orientation.z, c.orientation.w = q.tolist()
+        s.x, s.y, s.z = rng.uniform(0.5, 4, 3).tolist()
+        for _ in range(int(rng.integers(0, 5))):
+            r = ObjectHypothesisWithPose()
+            r.hypothesis.class_id = "c" * int(rng.integers(1, 10))
+            r.hypothesis.score = float(rng.uniform(-0.2, 1))
+            p = r.pose.pose
+            p.position.x, p.position.y, p.position.z = rng.normal(size=3).tolist()
+            p.orientation.w = float(rng.normal())
+            r.pose.covariance = rng.normal(size=36)
+            d.results.append(r)
+        dets.append(d)
+    dets[n // 2].bbox.center.position.y = math.nan
+    return Detection3DArray(header=h, detections=dets)
+
+
+def assert_arrays_equal(a, b):
+    np.testing.assert_array_equal(a.boxes, b.boxes)
+    np.testing.assert_array_equal(a.scores, b.scores)
+    np.testing.assert_array_equal(a.roll_pitch, b.roll_pitch)
+    assert (a.labels, a.ids, a.reasons) == (b.labels, b.ids, b.reasons)
+    np.testing.assert_array_equal(a.valid, b.valid)
+    assert a.class_scores.keys() == b.class_scores.keys()
+    for k in a.class_scores:
+        np.testing.assert_array_equal(a.class_scores[k], b.class_scores[k])
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_decode_equals_rclpy(seed):
+    msg = random_array(seed)
+    dec = decode_detection_array(serialize_message(msg))
+    assert dec.header == msg.header
+    assert_arrays_equal(dec.arrays, detections_to_arrays(msg))
+    assert dec.hyp_score.tolist() == [r.hypothesis.score for d in msg.detections
+                                      for r in d.results]
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_encode_subset_with_new_scores_equals_rclpy(seed):
+    msg = random_array(seed)
+    dec = decode_detection_array(serialize_message(msg))
+    rng = np.random.default_rng(seed)
+    rows = rng.permutation(len(msg.detections))[:4]
+    new = rng.uniform(size=len(dec.hyp_score))
+    out = deserialize_message(encode_detection_array(dec, rows, new), Detection3DArray)
+    want = deserialize_message(serialize_message(msg), Detection3DArray)
+    want.detections = [want.detections[i] for i in rows]
+    flat = iter(np.split(new, dec.hyp_offsets[1:-1]))
+    per_det = list(flat)
+    for d, i in zip(want.detections, rows):
+        for r, v in zip(d.results, per_det[i]):
+            r.hypothesis.score = float(v)
+    assert out.header == want.header
+    assert len(out.detections) == len(rows)
+    for a, b in zip(out.detections, want.detections):  # NaN != NaN: compare field-wise
+        assert a.header == b.header and a.id == b.id and len(a.results) == len(b.results)
+        np.testing.assert_array_equal(
+            [a.bbox.center.position.x, a.bbox.center.position.y, a.bbox.size.z],
+            [b.bbox.center.position.x, b.bbox.center.position.y, b.bbox.size.z])
+        assert a.bbox.center.orientation == b.bbox.center.orientation
+        assert a.results == b.results
+    # all rows, scores kept: byte-identical to rclpy up to padding bytes
+    full = encode_detection_array(dec, np.arange(len(dec)))
+    assert len(full) == len(serialize_message(msg))
+    again = decode_detection_array(full)
+    assert_arrays_equal(again.arrays, dec.arrays)
+
+
+def test_empty_array():
+    dec = decode_detection_array(serialize_message(Detection3DArray()))
+    assert len(dec) == 0 and dec.arrays.boxes.shape == (0, 7)
+    out = deserialize_message(encode_detection_array(dec, []), Detection3DArray)
+    assert out == Detection3DArray()
+
+
+def test_bad_bytes_refused():
+    good = serialize_message(random_array(0))
+    for bad, match in [(b"", "encapsulation"), (b"\x00\x07\x00\x00" + good[4:], "encapsulation"),
+                       (good[:len(good) // 2], "truncated|bad string"),
+                       (good[:12] + b"\xff\xff\xff\x7f" + good[16:], "bad string")]:
+        with pytest.raises(CdrError, match=match):
+            decode_detection_array(bad)
+
+
+def test_rescaled_scores():
+    s = np.array([0.6, 0.2, 0.0, -1.0, 0.3, math.nan, 0.5, 0.5])
+    det = np.array([0, 0, 1, 1, 2, 3, 4, 4])
+    out = rescaled_scores(s, det, np.array([0.3, 0.8, math.nan, 0.4, 0.9]))
+    np.testing.assert_allclose(out[:2], [0.3, 0.1])       # ratio kept, top = confidence
+    assert out[2:4].tolist() == [0.8, -1.0]               # top 0: set, others unchanged
+    assert math.isnan(out[4])                             # NaN confidence
+    assert out[5] == 0.4                                  # no finite score: first set
+    assert out[6:].tolist() == [0.9, 0.9]                 # tied tops both = confidence
+
+
+@pytest.mark.parametrize("n,frame_id", [(0, "lidar"), (1, ""), (9, "lidar_top"), (40, "ab")])
+def test_encode_detections_is_the_message_arrays_to_detections_builds(n, frame_id):
+    from lidar_quality_core.boxes import arrays_to_detections
+    from lidar_quality_core.detection_cdr import encode_detections
+
+    rng = np.random.default_rng(n)
+    h = Header(frame_id=frame_id)
+    h.stamp.sec, h.stamp.nanosec = 123, 456789
+    boxes = rng.normal(size=(n, 7))
+    boxes[:, 3:6] = np.abs(boxes[:, 3:6]) + 0.1
+    names = ("car", "truck", "pedestrian", "cyclist")
+    S = rng.random((n, 4))
+    S[rng.random((n, 4)) < 0.2] = np.nan      # absent hypotheses
+    S[: min(n, 3), 1] = S[: min(n, 3), 0]     # ties keep the column order
+    ids = [f"{k % 3}:{'é' * (k % 4)}{k}" for k in range(n)]
+    for cov in (None, rng.random((n, 6))):
+        ref = arrays_to_detections(h, boxes, None, None, ids=ids, covariance_diagonal=cov,
+                                   class_scores={c: S[:, k] for k, c in enumerate(names)})
+        data = encode_detections(h, boxes, names, S, ids=ids, covariance_diagonal=cov)
+        assert len(data) == len(serialize_message(ref))
+        got = deserialize_message(data, Detection3DArray)
+        assert got.header == h and len(got.detections) == n
+        for x, y in zip(got.detections, ref.detections):
+            assert (x.header, x.id, x.bbox) == (y.header, y.id, y.bbox)
+            assert [(r.hypothesis.class_id, r.hypothesis.score) for r in x.results] == [
+                (r.hypothesis.class_id, r.hypothesis.score) for r in y.results]
+            for r, q in zip(x.results, y.results):
+                assert r.pose.pose == q.pose.pose
+                np.testing.assert_array_equal(r.pose.covariance, q.pose.covariance)
+        # and our own decoder reads it back
+        dec = decode_detection_array(data)
+        np.testing.assert_allclose(dec.arrays.boxes[:, :6], boxes[:, :6])
+        assert dec.arrays.ids == ids
+
+
+def test_class_names_sharing_prefixes_and_lengths():
+    names = ["pedestrian_a", "pedestrian_b", "car", "bus", "pedestrian_a", "ü", "car",
+             "x" * 40, "x" * 39 + "y"]
+    msg = Detection3DArray()
+    for k, name in enumerate(names):
+        d = Detection3D(id=str(k))
+        d.bbox.size.x = d.bbox.size.y = d.bbox.size.z = 1.0
+        d.bbox.center.orientation.w = 1.0
+        for j, other in enumerate((name, names[(k + 3) % len(names)])):
+            r = ObjectHypothesisWithPose()
+            r.hypothesis.class_id, r.hypothesis.score = other, 0.9 - 0.1 * j
+            d.results.append(r)
+        msg.detections.append(d)
+    dec = decode_detection_array(serialize_message(msg))
+    assert_arrays_equal(dec.arrays, detections_to_arrays(msg))
+    assert dec.arrays.labels == names

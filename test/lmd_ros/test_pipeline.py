@@ -1,0 +1,333 @@
+"""lmd_ros.pipeline: messages -> features (same as compute_features on the same arrays),
+exact-mode NMS, invalid boxes, malformed clouds, and the node's frame processor."""
+import math
+
+import numpy as np
+import pytest
+from lidar_quality_core import synthetic
+from lidar_quality_core.boxes import arrays_to_detections, detections_to_arrays
+from lidar_quality_core.detection_cdr import decode_detection_array
+from lidar_quality_core.meta_model import MetaModels
+from lidar_quality_core.nms import rotated_nms
+from lidar_quality_core.pointcloud import CloudFormatError, create_cloud, create_xyz_cloud
+from rclpy.serialization import deserialize_message, serialize_message
+from vision_msgs.msg import Detection3DArray
+from lmd_frames import CLASS_NAMES, frame_messages, header, train_models
+from lmd_ros.features import ProposalSets, compute_features, feature_names
+from lmd_ros.pipeline import (LmdProcessor, LmdSettings, default_model_paths,
+                              frame_features, frame_id_mismatch)
+
+H = header(5)
+
+
+def dets_msg(boxes, scores, labels, ids=None, h=H):
+    return arrays_to_detections(h, np.asarray(boxes, float), labels, scores,
+                                ids=ids if ids is not None else [f"b{i}" for i in range(len(boxes))])
+
+
+def hand_frame():
+    """Two unit-spaced point blocks with known reflectance, three detections, proposals
+    around the first two (and one far away)."""
+    g = np.stack(np.meshgrid(np.linspace(-0.9, 0.9, 4), np.linspace(-0.4, 0.4, 3),
+                             np.linspace(-0.4, 0.4, 2)), -1).reshape(-1, 3)  # 24 points
+    pts = np.concatenate([g + [10, 0, 0], g + [0, 10, 0], [[50, 50, 50]]]).astype(np.float32)
+    inten = np.concatenate([np.full(24, 0.5), np.linspace(0, 1, 24), [0.9]]).astype(np.float32)
+    boxes = np.array([[10, 0, 0, 2, 1, 1, 0.0], [0, 10, 0, 2, 1.6, 1, 0.3],
+                      [-20, 0, 0, 4, 2, 1.5, 1.0]])
+    scores = np.array([0.9, 0.7, 0.4])
+    labels = ["car", "pedestrian", "cyclist"]
+    pboxes = np.concatenate([boxes, boxes[:2] + [0.1, 0, 0, 0, 0, 0, 0.05],
+                             boxes[:1] + [0.3, 0.1, 0, 0.2, 0, 0, -0.1],
+                             [[40, 40, 0, 2, 2, 2, 0]]])
+    pscores = np.array([0.9, 0.7, 0.4, 0.6, 0.5, 0.05, 0.3])
+    plabels = ["car", "pedestrian", "cyclist", "car", "pedestrian", "car", "truck"]
+    return pts, inten, boxes, scores, labels, pboxes, pscores, plabels
+
+
+def hand_messages():
+    pts, inten, boxes, scores, labels, pboxes, pscores, plabels = hand_frame()
+    cloud = create_xyz_cloud(H, pts, inten)
+    return (cloud, dets_msg(boxes, scores, labels),
+            dets_msg(pboxes, pscores, plabels, ids=[f"p{k}" for k in range(len(pboxes))]))
+
+
+# ------------------------------------------------------------------ settings
+def test_settings_schema_and_validation():
+    assert len(LmdSettings().feature_names()) == 90
+    assert LmdSettings(proposal_mode="exact").feature_names() == feature_names("exact")
+    assert LmdSettings(proposal_mode="none").feature_names() == feature_names("none")
+    extra = LmdSettings(class_score_features=True).feature_names()
+    assert extra[-4:] == tuple(f"class_score_{c}" for c in CLASS_NAMES)
+    LmdSettings().validate()
+    for bad, msg in [(dict(proposal_mode="nms"), "proposal_mode"),
+                     (dict(iou_threshold=1.0), "iou_threshold"),
+                     (dict(iou_threshold=-0.1), "iou_threshold"),
+                     (dict(proposal_score_threshold=math.nan), "proposal_score_threshold"),
+                     (dict(nms_iou_threshold=1.5), "nms_iou_threshold"),
+                     (dict(nms_score_threshold=math.inf), "nms_score_threshold"),
+                     (dict(class_names=()), "class_names"),
+                     (dict(class_names=("car", "")), "class_names"),
+                     (dict(class_names=("car", "car")), "duplicates")]:
+        with pytest.raises(ValueError, match=msg):
+            LmdSettings(**bad).validate()
+
+
+def test_default_model_paths(monkeypatch, tmp_path):
+    monkeypatch.setenv("LQ_MODELS_DIR", str(tmp_path))
+    assert default_model_paths("exact") == (tmp_path / "lmd" / "lmd_exact_classifier.joblib",
+                                            tmp_path / "lmd" / "lmd_exact_regressor.joblib")
+    with pytest.raises(ValueError):
+        default_model_paths("all")
+
+
+# ------------------------------------------------------------------ features from messages
+def test_threshold_mode_equals_compute_features_on_same_arrays():
+    pts, inten, boxes, scores, labels, pboxes, pscores, plabels = hand_frame()
+    s = LmdSettings(iou_threshold=0.3, proposal_score_threshold=0.1)
+    fr = frame_features(*hand_messages(), s)
+    want = compute_features(pts, inten, boxes, scores, labels, proposals=(pboxes, pscores),
+                            mode="threshold", iou_threshold=0.3, proposal_score_threshold=0.1,
+                            class_names=CLASS_NAMES)
+    np.testing.assert_allclose(fr.features, want, rtol=1e-12, atol=1e-12)
+    assert fr.valid.all() and fr.n_points == 49
+    assert [m.id for m in fr.messages] == ["b0", "b1", "b2"]
+    f = dict(zip(s.feature_names(), fr.features[1]))
+    # known answers: 24 points in box 1 with reflectance linspace(0, 1, 24)
+    r = np.linspace(0, 1, 24).astype(np.float32).astype(float)
+    assert f["points"] == 24 and f["points_frac"] == pytest.approx(24 / 49)
+    assert f["refl_mean"] == pytest.approx(r.mean(), rel=1e-6)
+    assert f["refl_std"] == pytest.approx(r.std(), rel=1e-6)
+    assert f["class"] == CLASS_NAMES.index("pedestrian") and f["score"] == pytest.approx(0.7)
+    assert f["n_proposals"] == 2  # itself + its shifted copy
+    # box 0: itself and the shifted copy; the widened copy scores below the threshold
+    n_col = s.feature_names().index("n_proposals")
+    assert fr.features[:, n_col].tolist() == [2, 2, 1]
+    fr0 = frame_features(*hand_messages(), LmdSettings(iou_threshold=0.3))
+    assert fr0.features[:, n_col].tolist() == [3, 2, 1]
+
+
+def test_none_mode_and_class_score_extras():
+    pts, inten, boxes, scores, labels, *_ = hand_frame()
+    cloud, dets, _ = hand_messages()
+    fr = frame_features(cloud, dets, None, LmdSettings(proposal_mode="none"))
+    want = compute_features(pts, inten, boxes, scores, labels, mode="none",
+                            class_names=CLASS_NAMES)
+    np.testing.assert_allclose(fr.features, want, rtol=1e-12, atol=1e-12)
+    # per-class hypotheses: absent ones count as 0
+    probs = np.array([[0.6, 0.1, 0.2, 0.1], [0.1, 0.0, 0.8, 0.1], [0.3, 0.3, 0.0, 0.4]])
+    dets = arrays_to_detections(H, boxes, None, None, ids=[0, 1, 2],
+                                class_scores={c: np.where(probs[:, k] > 0, probs[:, k], np.nan)
+                                              for k, c in enumerate(CLASS_NAMES)})
+    s = LmdSettings(proposal_mode="none", class_score_features=True)
+    fr = frame_features(cloud, dets, None, s)
+    assert fr.features.shape == (3, 17 + 4)
+    np.testing.assert_allclose(fr.features[:, -4:], np.where(probs > 0, probs, 0.0))
+    assert fr.features[:, s.feature_names().index("score")].tolist() == [0.6, 0.8, 0.4]
+
+
+def test_exact_mode_runs_nms_and_keeps_proposal_ids():
+    f = synthetic.synthetic_frame(n_points=5000, n_objects=8, n_proposals=120, seed=4)
+    cloud, _, props = frame_messages(f, 1)
+    # one invalid proposal with the best score: it must neither survive nor break NMS
+    props.detections[7].bbox.size.x = float("nan")
+    props.detections[7].results[0].hypothesis.score = 2.0
+    s = LmdSettings(proposal_mode="exact", nms_iou_threshold=0.1, nms_score_threshold=0.1)
+    fr = frame_features(cloud, None, props, s)
+    pa = detections_to_arrays(props)
+    ok = np.flatnonzero(pa.valid)
+    assert len(ok) == len(pa) - 1
+    nms = rotated_nms(pa.boxes[ok], pa.scores[ok], 0.1, score_threshold=0.1)
+    keep = ok[nms.keep]
+    assert [m.id for m in fr.messages] == [f"p{k}" for k in keep.tolist()]
+    assert fr.detections.ids == [f"p{k}" for k in keep.tolist()]
+    assert all(m is props.detections[k] for m, k in zip(fr.messages, keep.tolist()))
+    sup = np.full(len(pa), -1)
+    sup[ok[nms.suppressed_by >= 0]] = ok[nms.suppressed_by[nms.suppressed_by >= 0]]
+    want = compute_features(f.points, f.intensity, pa.boxes[keep], pa.scores[keep],
+                            [pa.labels[k] for k in keep], proposals=(pa.boxes, pa.scores),
+                            mode="exact", preimage=ProposalSets.from_nms(sup, keep),
+                            class_names=CLASS_NAMES)
+    np.testing.assert_allclose(fr.features, want, rtol=1e-12, atol=1e-12)
+    n_prop = fr.features[:, s.feature_names().index("n_proposals")]
+    assert n_prop.sum() == np.count_nonzero(sup >= 0)  # every NMS input in exactly one set
+    assert len(keep) and (pa.scores[keep] >= 0.1).all()
+
+
+def test_invalid_boxes_get_nan_rows_and_leave_the_others_alone():
+    pts, inten, boxes, scores, labels, pboxes, pscores, plabels = hand_frame()
+    cloud, _, props = hand_messages()
+    bad = np.array([[1, 1, 0, 2, 1, 1, 0], [2, 2, 0, 0.0, 1, 1, 0], [3, 3, 0, 2, 1, 1, 0]], float)
+    bad[0, 1] = np.nan
+    all_boxes = np.concatenate([boxes[:1], bad, boxes[1:]])
+    dets = dets_msg(all_boxes, np.r_[scores[:1], 0.5, 0.5, 0.5, scores[1:]],
+                    labels[:1] + ["car", "car", "bus"] + labels[1:])
+    dets.detections.insert(2, type(dets.detections[0])(id="empty"))  # no hypothesis
+    fr = frame_features(cloud, dets, props, LmdSettings())
+    assert [m.id for m in fr.messages] == ["b0", "b1", "empty", "b2", "b3", "b4", "b5"]
+    assert fr.valid.tolist() == [True, False, False, False, False, True, True]
+    assert np.isnan(fr.features[~fr.valid]).all()
+    r = fr.detections.reasons
+    assert "non-finite centre" in r[1] and "no hypothesis" in r[2] and "size <= 0" in r[3]
+    assert r[4] == "unknown class 'bus'"
+    good = frame_features(*hand_messages(), LmdSettings()).features
+    np.testing.assert_allclose(fr.features[fr.valid], good, rtol=1e-12)
+
+
+def test_empty_detections():
+    cloud, _, props = hand_messages()
+    fr = frame_features(cloud, dets_msg(np.zeros((0, 7)), [], []), props, LmdSettings())
+    assert fr.features.shape == (0, 90) and fr.messages == [] and fr.valid.shape == (0,)
+
+
+def test_malformed_clouds_raise_cloud_format_error():
+    cloud, dets, props = hand_messages()
+    cloud.data = cloud.data[:50]
+    with pytest.raises(CloudFormatError, match="truncated"):
+        frame_features(cloud, dets, props, LmdSettings())
+    no_intensity = create_xyz_cloud(H, np.zeros((4, 3), np.float32))
+    with pytest.raises(CloudFormatError, match="intensity"):
+        frame_features(no_intensity, dets, props, LmdSettings())
+    no_z = create_cloud(H, {"x": np.zeros(4, np.float32), "y": np.zeros(4, np.float32),
+                            "intensity": np.zeros(4, np.float32)})
+    with pytest.raises(CloudFormatError, match="'z'"):
+        frame_features(no_z, dets, props, LmdSettings())
+    with pytest.raises(ValueError, match="proposals"):
+        frame_features(hand_messages()[0], dets, None, LmdSettings())
+
+
+def test_nan_points_are_not_counted():
+    pts, inten, *_ = hand_frame()
+    pts = pts.copy()
+    pts[0, 2] = np.nan
+    inten = inten.copy()
+    inten[30] = np.nan
+    _, dets, props = hand_messages()
+    fr = frame_features(create_xyz_cloud(H, pts, inten), dets, props, LmdSettings())
+    assert fr.n_points == 47
+    names = LmdSettings().feature_names()
+    assert fr.features[0, names.index("points")] == 23
+    assert fr.features[1, names.index("points")] == 23
+
+
+def test_frame_id_mismatch():
+    cloud, dets, props = hand_messages()
+    assert frame_id_mismatch(cloud, dets, props) is None
+    dets.header = header(5, "base_link")
+    msg = frame_id_mismatch(cloud, dets, None)
+    assert "input/points 'lidar_top'" in msg and "input/detections 'base_link'" in msg
+
+
+# ------------------------------------------------------------------ processor
+@pytest.fixture(scope="module")
+def threshold_models(tmp_path_factory):
+    s = LmdSettings()
+    return s, MetaModels(*train_models(tmp_path_factory.mktemp("lmd"), s), s.feature_names())
+
+
+def test_processor_outputs_match_models_on_frame_features(threshold_models):
+    s, models = threshold_models
+    f = synthetic.synthetic_frame(n_points=20_000, n_objects=12, n_proposals=120, seed=9)
+    cloud, dets, props = frame_messages(f, 3)
+    ids = [d.id for d in dets.detections]
+    ref = frame_features(*frame_messages(f, 3), s)
+    conf, iou = models.predict(ref.features)
+    out = LmdProcessor(s, models).process(cloud, dets, props, markers=True)
+    np.testing.assert_array_equal(out.confidence, conf)
+    np.testing.assert_array_equal(out.predicted_iou, iou)
+    assert [d.id for d in out.detections.detections] == ids and out.kept.all()
+    assert out.detections.header == dets.header and out.quality.header == dets.header
+    tops = [max(r.hypothesis.score for r in d.results) for d in out.detections.detections]
+    np.testing.assert_allclose(tops, conf)
+    q = out.quality
+    assert q.confidence_model_id == models.confidence_model_id != ""
+    assert q.iou_model_id == models.iou_model_id
+    assert [e.detection_index for e in q.detections] == list(range(len(ids)))
+    assert [e.detection_id for e in q.detections] == ids
+    np.testing.assert_allclose([e.original_score for e in q.detections], ref.detections.scores)
+    np.testing.assert_allclose([e.confidence for e in q.detections], conf)
+    np.testing.assert_allclose([e.predicted_iou for e in q.detections], iou)
+    texts = [m.text for m in out.markers.markers if m.text]
+    assert texts[0] == f"{ref.detections.labels[0]} c={conf[0]:.2f} iou={iou[0]:.2f}"
+    assert len(texts) == len(ids) and out.issues == {}
+    # min_confidence: the only way a detection disappears; the quality array keeps all
+    thr = float(np.median(conf))
+    out2 = LmdProcessor(s, models, min_confidence=thr).process(*frame_messages(f, 3))
+    assert [d.id for d in out2.detections.detections] == [i for i, c in zip(ids, conf) if c >= thr]
+    assert len(out2.quality.detections) == len(ids)
+
+
+def test_processor_flags_invalid_boxes(threshold_models):
+    s, models = threshold_models
+    f = synthetic.synthetic_frame(n_points=20_000, n_objects=6, n_proposals=60, seed=2)
+    cloud, dets, props = frame_messages(f, 3)
+    dets.detections[1].bbox.size.y = 0.0
+    dets.detections[2].results[0].hypothesis.class_id = "tram"
+    dets.header = header(3, "odom")
+    out = LmdProcessor(s, models, min_confidence=0.01).process(cloud, dets, props)
+    assert np.isnan(out.confidence[1:3]).all() and np.isfinite(out.confidence[3:]).all()
+    assert "2 invalid" in out.issues["detections"] and "unknown class 'tram'" in out.issues["detections"]
+    assert "frame_id" in out.issues["frame_id"]
+    assert [d.id for d in out.detections.detections] == [
+        d for k, d in enumerate(out.frame.detections.ids) if k not in (1, 2)
+        and out.confidence[k] >= 0.01]
+    kept_all = LmdProcessor(s, models).process(*frame_messages(f, 3)[:2], props)
+    assert len(kept_all.detections.detections) == len(dets.detections)
+
+
+def test_processor_refuses_mismatched_models(threshold_models):
+    _, models = threshold_models
+    with pytest.raises(ValueError, match="feature schema"):
+        LmdProcessor(LmdSettings(proposal_mode="none"), models)
+    with pytest.raises(ValueError, match="min_confidence"):
+        LmdProcessor(LmdSettings(), models, min_confidence=1.5)
+
+
+def decoded(msg):
+    return decode_detection_array(serialize_message(msg))
+
+
+@pytest.mark.parametrize("mode", ["threshold", "exact", "none"])
+def test_decoded_input_gives_the_same_features(mode):
+    f = synthetic.synthetic_frame(n_points=5000, n_objects=8, n_proposals=120, seed=5)
+    cloud, dets, props = frame_messages(f, 1)
+    dets.detections[2].bbox.size.x = 0.0
+    s = LmdSettings(proposal_mode=mode)
+    a = frame_features(cloud, dets, props if mode != "none" else None, s)
+    b = frame_features(cloud, decoded(dets), decoded(props) if mode != "none" else None, s)
+    np.testing.assert_array_equal(a.features, b.features)
+    assert a.detections.ids == b.detections.ids and b.messages is None
+    np.testing.assert_array_equal(a.rows, b.rows)
+    np.testing.assert_array_equal(a.valid, b.valid)
+    assert a.header == b.header
+
+
+@pytest.mark.parametrize("mode, min_conf", [("threshold", 0.0), ("threshold", 0.6),
+                                            ("exact", 0.0), ("exact", 0.6)])
+def test_processor_bytes_output_equals_message_output(mode, min_conf, tmp_path):
+    s = LmdSettings(proposal_mode=mode)
+    models = MetaModels(*train_models(tmp_path, s, n_frames=3), s.feature_names())
+    proc = LmdProcessor(s, models, min_confidence=min_conf)
+    f = synthetic.synthetic_frame(n_points=20_000, n_objects=12, n_proposals=120, seed=8)
+    cloud, dets, props = frame_messages(f, 2)
+    dets.detections[1].results[0].hypothesis.class_id = "tram"  # NaN confidence
+    if mode == "exact":
+        dets = None
+    want = proc.process(cloud, dets, props)
+    cloud, dets, props = frame_messages(f, 2)
+    dets.detections[1].results[0].hypothesis.class_id = "tram"
+    got = proc.process(cloud, None if mode == "exact" else decoded(dets), decoded(props))
+    assert isinstance(got.detections, bytes)
+    out = deserialize_message(got.detections, Detection3DArray)
+    ref = want.detections
+    assert out.header == ref.header and len(out.detections) == len(ref.detections)
+    assert 0 < len(out.detections) and (min_conf == 0) == (len(out.detections) == len(want.kept))
+    for a, b in zip(out.detections, ref.detections):
+        assert a.id == b.id and a.bbox == b.bbox and a.header == b.header
+        assert [r.pose for r in a.results] == [r.pose for r in b.results]
+        np.testing.assert_array_equal([r.hypothesis.score for r in a.results],
+                                      [r.hypothesis.score for r in b.results])
+    assert got.quality.header == want.quality.header
+    for field in ("detection_id", "class_id", "original_score", "confidence", "predicted_iou"):
+        np.testing.assert_array_equal([getattr(e, field) for e in got.quality.detections],
+                                      [getattr(e, field) for e in want.quality.detections])
+    assert np.isnan(got.confidence).sum() == (mode == "threshold")  # the "tram" detection

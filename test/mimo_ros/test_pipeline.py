@@ -1,0 +1,336 @@
+"""mimo_ros.pipeline: head messages -> merged detections, features, outputs; head fallback."""
+import numpy as np
+import pytest
+from lidar_quality_core.boxes import detections_to_arrays
+from lidar_quality_core.meta_model import MetaModels, fit_estimator, save_pair
+from lidar_quality_core.pointcloud import create_xyz_cloud
+from mimo_ros.merging import HeadDetections, MergeConfig, merge_heads
+from mimo_ros.pipeline import (DEFAULT_CLASS_NAMES, POINT_FEATURES, STAT_FEATURES,
+                               InputLiveness, MimoSettings, default_model_paths,
+                               frame_features, head_detections, output_messages,
+                               process_frame)
+from reference_perception.messages import box_variance_array, detection_array
+from std_msgs.msg import Header
+
+NAMES = DEFAULT_CLASS_NAMES
+F = {n: i for i, n in enumerate(STAT_FEATURES)}
+
+
+def header(sec=1):
+    h = Header(frame_id="lidar")
+    h.stamp.sec = sec
+    return h
+
+
+def probs(rows):
+    """Foreground probabilities (n, 4) from rows of (label column, probability)."""
+    out = np.full((len(rows), 4), 0.0)
+    for i, (c, p) in enumerate(rows):
+        out[i] = (1.0 - p) / 5.0
+        out[i, c] = p
+    return out
+
+
+BOXES = np.array([[10.0, 2.0, -0.8, 4.5, 1.9, 1.6, 0.3],
+                  [25.0, -6.0, -0.9, 0.8, 0.7, 1.8, -2.0],
+                  [-15.0, 8.0, -1.0, 1.8, 0.7, 1.7, 3.1]])
+FG = probs([(0, 0.8), (2, 0.6), (3, 0.7)])
+VAR = np.tile([0.04, 0.05, 0.01, 0.02, 0.01, 0.01, 0.003], (3, 1))
+
+
+def head_msg(boxes=BOXES, fg=FG, var=VAR, ids=None):
+    return detection_array(header(), boxes, fg, NAMES, ids=ids, variances=var)
+
+
+def var_msg(var=VAR, ids=None):
+    return box_variance_array(header(), var, ids=ids)
+
+
+def full_probs(fg):
+    return np.column_stack([np.clip(1 - fg.sum(axis=1), 0, 1), fg])
+
+
+def test_identical_heads_give_zero_mi_and_etv():
+    s = MimoSettings()
+    f = frame_features([head_msg(), head_msg()], [var_msg(), var_msg()], s)
+    assert f.features.shape == (3, len(s.feature_names())) and s.feature_names() == STAT_FEATURES
+    assert np.all(f.features[:, F["cluster_size"]] == 2)
+    assert np.all(f.features[:, F["head_fraction"]] == 1.0)
+    assert np.all(f.features[:, F["mutual_information"]] == 0.0)
+    assert np.all(f.features[:, F["epistemic_total_variance"]] == 0.0)
+    np.testing.assert_allclose(f.features[:, F["aleatoric_total_variance"]], VAR.sum(axis=1))
+    assert f.heads_used == [0, 1] and not f.issues
+
+
+def test_merged_frame_equals_merge_heads_on_the_arrays():
+    rng = np.random.default_rng(0)
+    boxes = [BOXES + rng.normal(0, 0.1, BOXES.shape) * [1, 1, 0.2, 0.1, 0.1, 0.1, 0.1]
+             for _ in range(2)]
+    fg = [probs([(0, 0.8), (2, 0.6), (3, 0.7)]), probs([(0, 0.7), (1, 0.5), (3, 0.9)])]
+    var = [VAR, VAR * 2]
+    s = MimoSettings()
+    f = frame_features([head_msg(b, p, v) for b, p, v in zip(boxes, fg, var)],
+                       [var_msg(v) for v in var], s)
+    ref = merge_heads([HeadDetections(b, full_probs(p), v) for b, p, v in zip(boxes, fg, var)],
+                      MergeConfig(score_type="probabilities", background_index=0))
+    m = f.merge
+    np.testing.assert_allclose(m.boxes, ref.boxes, atol=1e-12)
+    np.testing.assert_allclose(m.class_probs, ref.class_probs, atol=1e-12)
+    np.testing.assert_array_equal(m.labels, ref.labels)
+    st = ref.stats
+    X = f.features
+    np.testing.assert_allclose(X[:, F["shannon_entropy"]], st.shannon_entropy, atol=1e-12)
+    np.testing.assert_allclose(X[:, F["mutual_information"]], st.mutual_information, atol=1e-12)
+    np.testing.assert_allclose(X[:, F["epistemic_total_variance"]], st.epistemic_total_variance)
+    np.testing.assert_allclose(X[:, F["aleatoric_total_variance"]], st.aleatoric_total_variance)
+    np.testing.assert_allclose(X[:, F["epistemic_var_x"]:F["epistemic_var_yaw"] + 1],
+                               st.epistemic_variance)
+    np.testing.assert_allclose(X[:, F["score"]], ref.scores)
+    np.testing.assert_array_equal(X[:, F["class"]], ref.labels - 1)
+    np.testing.assert_allclose(X[:, F["distance"]], np.hypot(*ref.boxes[:, :2].T))
+    # ids and classes of the top members
+    assert f.class_labels() == [NAMES[c - 1] for c in ref.labels]
+    top = ref.top_member
+    assert f.merged_ids() == [f"{ref.member_head[t]}:{ref.member_index[t]}" for t in top]
+
+
+def test_missing_head_merges_the_heads_present():
+    s = MimoSettings(num_heads=3)  # consensus over 3 needs 2 votes; over the 2 present too
+    one_box = BOXES[:1]
+    f = frame_features([head_msg(ids=[7, 8, 9]), None, head_msg(one_box, FG[:1], VAR[:1])],
+                       None, s)
+    assert f.heads_used == [0, 2] and f.merge.num_heads == 2 and f.merge.min_samples == 2
+    assert len(f) == 1 and f.merged_ids() == ["0:7"] and f.top_heads().tolist() == [0]
+    np.testing.assert_allclose(f.features[:, F["head_fraction"]], 1.0)
+    # one head left: its boxes are clusters of their own (K = 1, one vote)
+    f1 = frame_features([None, head_msg(), None], None, s)
+    assert f1.heads_used == [1] and len(f1) == 3 and f1.top_heads().tolist() == [1, 1, 1]
+    np.testing.assert_allclose(f1.merge.boxes, BOXES, atol=1e-12)
+    with pytest.raises(ValueError, match="no head"):
+        frame_features([None, None, None], None, s)
+    with pytest.raises(ValueError, match="num_heads"):
+        frame_features([head_msg()], None, s)
+
+
+def test_without_variances_the_aleatoric_figures_are_nan():
+    f = frame_features([head_msg(), head_msg(BOXES + [0.1, 0, 0, 0, 0, 0, 0])], None,
+                       MimoSettings())
+    assert len(f) == 3
+    X = f.features
+    assert np.isnan(X[:, F["aleatoric_total_variance"]]).all()
+    assert np.isnan(X[:, F["aleatoric_var_x"]:F["aleatoric_var_yaw"] + 1]).all()
+    np.testing.assert_allclose(X[:, F["epistemic_var_x"]], 0.0025)  # (0.1 m / 2)^2
+    np.testing.assert_allclose(X[:, F["epistemic_total_variance"]], 0.0025)
+    # the covariance falls back to the epistemic variance (a lower bound), never NaN
+    dets, unc = output_messages(header(), f, np.full(3, 0.5), np.full(3, 0.6))
+    cov = np.array(dets.detections[0].results[0].pose.covariance).reshape(6, 6)
+    np.testing.assert_allclose(np.diag(cov), [0.0025, 0, 0, 0, 0, 0], atol=1e-12)
+    assert np.isnan(unc.clusters[0].aleatoric_total_variance)
+
+
+def test_variance_entries_are_matched_by_index_and_id():
+    a = detections_to_arrays(head_msg(ids=[5, 6, 7]))
+    assert a.ids == ["5", "6", "7"]
+    v = var_msg(ids=[5, 99, 7])  # entry 1 names another detection
+    v.variances[2].x = -1.0      # a negative variance
+    issues = []
+    hd, _ = head_detections(head_msg(ids=[5, 6, 7]), v, MimoSettings(), issues=issues)
+    np.testing.assert_allclose(hd.variances[0], VAR[0])
+    assert np.isnan(hd.variances[1]).all()
+    assert np.isnan(hd.variances[2, 0]) and np.allclose(hd.variances[2, 1:], VAR[2, 1:])
+    assert any("2 variance entries ignored" in t for t in issues)
+
+
+def test_class_distribution_conversion():
+    hd, a = head_detections(head_msg(), None, MimoSettings())
+    np.testing.assert_allclose(hd.class_scores, full_probs(FG))
+    # already decoded arrays (e.g. from serialized bytes) give the same
+    hd2, a2 = head_detections(detections_to_arrays(head_msg()), None, MimoSettings())
+    np.testing.assert_array_equal(hd2.class_scores, hd.class_scores)
+    np.testing.assert_array_equal(hd2.boxes, hd.boxes)
+    # a class without hypothesis is probability 0; unknown classes are ignored
+    m = head_msg()
+    m.detections[0].results = m.detections[0].results[:1]  # car 0.8 only
+    m.detections[1].results[0].hypothesis.class_id = "bus"  # pedestrian 0.6 -> unknown
+    hd, _ = head_detections(m, None, MimoSettings())
+    np.testing.assert_allclose(hd.class_scores[0], [0.2, 0.8, 0, 0, 0])
+    np.testing.assert_allclose(hd.class_scores[1, 3], 0.0)
+    np.testing.assert_allclose(hd.class_scores[1].sum(), 1.0)  # background took the 0.6
+
+
+def test_malformed_boxes_are_left_out_and_reported():
+    boxes = np.vstack([BOXES, BOXES[:1] * [1, 1, 1, 1, 1, 1, 1]])
+    boxes[0, 0] = np.nan        # NaN centre
+    boxes[1, 3] = 0.0           # zero length
+    fg = np.vstack([FG, FG[:1]])
+    m = head_msg(boxes, fg, None)
+    for r in m.detections[2].results:
+        r.hypothesis.class_id = "ufo"  # no known class
+    m.detections[3].results[0].hypothesis.score = 1.5  # not a probability
+    issues = []
+    hd, a = head_detections(m, None, MimoSettings(), issues=issues)
+    assert np.isnan(hd.class_scores).all(axis=1).tolist() == [True] * 4
+    assert issues[0] == ("4 unusable box(es): #0: non-finite centre, #1: size <= 0, "
+                         "#2: no hypothesis of a known class, #3: class score outside [0, 1]")
+    f = frame_features([m, head_msg()], None, MimoSettings())
+    assert len(f) == 0 and f.features.shape == (0, len(STAT_FEATURES))
+    assert all(t.startswith("head 0:") for t in f.issues)
+
+
+def test_points_features_of_the_merged_box():
+    from lmd_ros.features import OWN_QUANTITIES, compute_features
+
+    rng = np.random.default_rng(1)
+    xyz = np.vstack([BOXES[0, :3] + rng.uniform(-0.5, 0.5, (40, 3)),
+                     rng.uniform(-50, 50, (500, 3))]).astype(np.float32)
+    inten = rng.uniform(0, 1, len(xyz)).astype(np.float32)
+    s = MimoSettings(use_points=True)
+    assert s.feature_names() == STAT_FEATURES + POINT_FEATURES
+    cloud = create_xyz_cloud(header(), xyz, inten)
+    f = frame_features([head_msg(), head_msg()], None, s, cloud)
+    ref = compute_features(xyz, inten, f.merge.boxes, f.merge.scores, f.merge.labels - 1,
+                           mode="none")[:, [OWN_QUANTITIES.index(n) for n in POINT_FEATURES]]
+    np.testing.assert_allclose(f.features[:, len(STAT_FEATURES):], ref)
+    assert f.features[0, len(STAT_FEATURES)] >= 40
+    # the same from arrays; no intensity: counts stay, reflectance unknown
+    g = frame_features([head_msg(), head_msg()], None, s, (xyz, None))
+    np.testing.assert_allclose(g.features[:, -5:-3], ref[:, :2])
+    assert np.isnan(g.features[:, -3:]).all()
+    # no cloud at all: NaN point features
+    assert np.isnan(frame_features([head_msg(), head_msg()], None, s).features[:, -5:]).all()
+
+
+def test_settings_validation_and_model_paths():
+    MimoSettings().validate()
+    for bad in (MimoSettings(num_heads=0), MimoSettings(merge=MergeConfig()),
+                MimoSettings(class_names=()), MimoSettings(class_names=("car", "car"))):
+        with pytest.raises(ValueError):
+            bad.validate()
+    c, r = default_model_paths(False)
+    assert c.name == "mimo_classifier.joblib" and r.name == "mimo_regressor.joblib"
+    assert c.parent.name == "mimo"
+    assert default_model_paths(True)[0].name == "mimo_points_classifier.joblib"
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    """Small real models (linear) on the features of a few perturbed frames."""
+    s = MimoSettings()
+    rng = np.random.default_rng(2)
+    X, y_cls, y_iou = [], [], []
+    for i in range(12):
+        jitter = [1, 1, 0, 0, 0, 0, 0]
+        heads = [head_msg(BOXES + rng.normal(0, 0.02 * (1 + i % 4), BOXES.shape) * jitter)
+                 for _ in range(2)]
+        f = frame_features(heads, None, s)
+        X.append(f.features)
+        d = np.linalg.norm(f.merge.boxes[:, None, :2] - BOXES[None, :, :2], axis=2).min(axis=1)
+        y_iou.append(np.clip(1 - d, 0, 1))
+        y_cls.append((d < 0.04).astype(float))
+    X, y_cls, y_iou = np.vstack(X), np.concatenate(y_cls), np.concatenate(y_iou)
+    y_cls[:2] = [0, 1]
+    clf = fit_estimator("linear", "classification", X, y_cls)
+    reg = fit_estimator("linear", "regression", X, y_iou)
+    c, r = save_pair(tmp_path_factory.mktemp("mimo_models"), "mimo", clf, reg, s.feature_names())
+    return MetaModels(c, r, s.feature_names())
+
+
+def test_process_frame_outputs(models):
+    s = MimoSettings()
+    h = header(3)
+    heads = [head_msg(BOXES + [0.05, 0, 0, 0, 0, 0, 0]), head_msg(ids=[3, 4, 5])]
+    variances = [var_msg(), var_msg(VAR * 2, ids=[3, 4, 5])]
+    out = process_frame(h, heads, variances, s, models)
+    f = frame_features(heads, variances, s)
+    assert not f.issues
+    conf, iou = models.predict(f.features)
+    np.testing.assert_array_equal(out.confidence, conf)
+    np.testing.assert_array_equal(out.predicted_iou, iou)
+    dets, unc = out.detections, out.uncertainty
+    assert dets.header.stamp.sec == 3 and unc.header.stamp.sec == 3
+    assert unc.confidence_model_id == models.confidence_model_id
+    ids = [d.id for d in dets.detections]
+    assert ids == f.merged_ids() == [c.detection_id for c in unc.clusters]
+    for i, d in enumerate(dets.detections):
+        sc = [r.hypothesis.score for r in d.results]
+        assert sc == sorted(sc, reverse=True) and len(sc) == 4
+        assert d.results[0].hypothesis.class_id == f.class_labels()[i]
+        assert sc[0] == pytest.approx(conf[i])
+        # ratios are the merged distribution's
+        p = f.merge.class_probs[i, 1:]
+        by_name = {r.hypothesis.class_id: r.hypothesis.score for r in d.results}
+        np.testing.assert_allclose([by_name[n] for n in NAMES], p * conf[i] / p.max())
+        cov = np.diag(np.array(d.results[0].pose.covariance).reshape(6, 6))
+        pv = f.merge.stats.predictive_variance[i]
+        np.testing.assert_allclose(cov[[0, 1, 2, 5]], pv[[0, 1, 2, 6]])
+        c = unc.clusters[i]
+        assert c.detection_index == i and c.cluster_size == 2
+        assert c.confidence == conf[i] and c.predicted_iou == iou[i]
+    np.testing.assert_allclose(
+        [[d.bbox.center.position.x, d.bbox.size.x] for d in dets.detections],
+        f.merge.boxes[:, [0, 3]])
+    # the node's serialized form is the same message
+    from rclpy.serialization import deserialize_message
+    from vision_msgs.msg import Detection3DArray
+
+    ser = process_frame(h, heads, variances, s, models, serialized=True)
+    back = deserialize_message(ser.detections, Detection3DArray)
+    assert back.header == dets.header
+    assert [(d.id, d.bbox, [(r.hypothesis.class_id, r.hypothesis.score) for r in d.results])
+            for d in back.detections] == [
+        (d.id, d.bbox, [(r.hypothesis.class_id, r.hypothesis.score) for r in d.results])
+        for d in dets.detections]
+    np.testing.assert_array_equal(back.detections[0].results[1].pose.covariance,
+                                  dets.detections[0].results[1].pose.covariance)
+    # unscaled scores on request
+    dets2, _ = output_messages(h, f, conf, iou, scores="merged")
+    assert dets2.detections[0].results[0].hypothesis.score == pytest.approx(f.merge.scores[0])
+
+
+# ------------------------------------------------------------------ InputLiveness
+S = 1_000_000_000
+
+
+def test_liveness_declares_a_silent_input_stopped_and_recovers():
+    lv = InputLiveness(2, timeout_ns=S // 2)
+    for t in range(3):  # both inputs publish: nothing to do
+        assert lv.arrival(0, t * S // 10).placeholders == []
+        assert lv.arrival(1, t * S // 10).placeholders == []
+    # input 1 goes silent; stamps 0.3 and 0.4 wait, 0.5 is still within the timeout
+    for t in (3, 4, 5, 6):
+        a = lv.arrival(0, t * S // 10, last_matched_ns=2 * S // 10)
+        assert a.stopped == [] and a.placeholders == []
+    a = lv.arrival(0, 8 * S // 10, last_matched_ns=2 * S // 10)  # 0.8 - 0.2 > 0.5
+    assert a.stopped == [1] and lv.stopped == [1]
+    assert a.placeholders == [(1, t * S // 10) for t in (3, 4, 5, 6, 8)]  # the waiting ones
+    a = lv.arrival(0, 9 * S // 10, last_matched_ns=8 * S // 10)
+    assert a.placeholders == [(1, 9 * S // 10)]
+    # input 1 is back: live again, no more placeholders
+    a = lv.arrival(1, 10 * S // 10, last_matched_ns=9 * S // 10)
+    assert a.resumed == [1] and lv.stopped == []
+    assert lv.arrival(0, 10 * S // 10, last_matched_ns=9 * S // 10).placeholders == []
+
+
+def test_liveness_never_seen_input_and_reset():
+    lv = InputLiveness(3, timeout_ns=S)
+    lv.arrival(0, 10 * S)
+    lv.arrival(1, 10 * S)
+    a = lv.arrival(0, 11 * S + 1, last_matched_ns=None)
+    assert a.stopped == [1, 2]  # 2 never sent anything; 1 is also > 1 s behind
+    assert (2, 11 * S + 1) in a.placeholders
+    # a looped bag: stamps jump back, everything is forgotten
+    a = lv.arrival(0, 2 * S)
+    assert a.resumed == [1, 2] and lv.stopped == [] and a.placeholders == []
+
+
+def test_liveness_approximate_mode_one_placeholder_per_frame():
+    lv = InputLiveness(3, timeout_ns=S // 2, slop_ns=S // 100)
+    lv.arrival(0, 0)
+    lv.arrival(1, 1000)
+    lv.arrival(2, 2000)
+    got = []
+    for k in range(1, 10):
+        t = k * S // 10
+        got += lv.arrival(0, t).placeholders
+        got += lv.arrival(1, t + 3_000_000).placeholders  # 3 ms later, same frame
+    assert [j for j, _ in got] == [2] * len({s // (S // 10) for _, s in got})
