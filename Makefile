@@ -11,12 +11,15 @@ WS_INPUTS := $(shell find -L ros2_ws/src -maxdepth 3 \( -name package.xml -o -na
 	-o -name setup.cfg -o -name CMakeLists.txt -o -name '*.msg' -o -name '*.yaml' \
 	-o -name '*.launch.py' \) -not -path '*/build/*' 2>/dev/null)
 
-.PHONY: help setup build test bench demo reference-models clean distclean lock
+.PHONY: help setup build test bench demo reference-models meta-data meta-models lmd-models \
+	lms-models mimo-models fuzz soak clean distclean lock
 
 help:
 	@echo "make demo   run the main job (set-up and build on first use)"
 	@echo "make test   run the test suite (set-up and build on first use)"
 	@echo "make reference-models   retrain the reference perception under models/reference"
+	@echo "make meta-models   retrain the LMD / LMS / MIMO meta models (models/lmd, lms, mimo) and write their reports"
+	@echo "make fuzz | soak   hardening runs (malformed input; 10 minutes at 10 Hz)"
 	@echo "make setup | build | bench | clean | distclean | lock"
 
 setup: $(SETUP_STAMP)
@@ -41,6 +44,35 @@ demo: build
 # reference_train split and print their held-out quality (reference_test).
 reference-models: build
 	bash scripts/with_env.sh python -m reference_perception.train --out models/reference
+
+# Perception bags of the meta model splits (simulated, with ground truth): the training
+# and held-out data of the three meta methods. Reused when present.
+META_BAGS := data/perception/meta_train/.done data/perception/meta_test/.done
+meta-data: $(META_BAGS)
+data/perception/%/.done: | build
+	rm -rf data/perception/$*
+	bash scripts/with_env.sh python -m reference_perception.cli split --split $* --out data/perception/$*
+	touch $@
+
+meta-models: lmd-models lms-models mimo-models
+
+lmd-models: build $(META_BAGS)
+	bash scripts/with_env.sh python -m lmd_ros.train --data data/perception/meta_train --out models/lmd --cache data/cache/lmd
+	bash scripts/with_env.sh python -m lmd_ros.evaluate --data data/perception/meta_test --models models/lmd --out out/lmd_eval --cache data/cache/lmd
+
+lms-models: build $(META_BAGS)
+	bash scripts/with_env.sh python -m lms_ros.train --data data/perception/meta_train --out models/lms --cache data/cache/lms
+	bash scripts/with_env.sh python -m lms_ros.evaluate --data data/perception/meta_test --models models/lms --out out/lms_eval --cache data/cache/lms
+
+mimo-models: build $(META_BAGS)
+	bash scripts/with_env.sh python -m mimo_ros.train --data data/perception/meta_train --out models/mimo --cache data/cache/mimo
+	bash scripts/with_env.sh python -m mimo_ros.evaluate --data data/perception/meta_test --models models/mimo --out out/mimo_eval --cache data/cache/mimo --docs docs --model-card models/mimo/MODEL_CARD.md
+
+fuzz: build
+	bash scripts/with_env.sh python scripts/fuzz_nodes.py --out out/fuzz/report.json
+
+soak: build
+	bash scripts/with_env.sh python scripts/soak.py --out out/soak/report.json
 
 clean:
 	rm -rf ros2_ws/build ros2_ws/install ros2_ws/log out .pytest_cache
