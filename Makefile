@@ -57,12 +57,12 @@ data/perception/%/.done: | build
 meta-models: lmd-models lms-models mimo-models
 
 lmd-models: build $(META_BAGS)
-	bash scripts/with_env.sh python -m lmd_ros.train --data data/perception/meta_train --out models/lmd --cache data/cache/lmd
-	bash scripts/with_env.sh python -m lmd_ros.evaluate --data data/perception/meta_test --models models/lmd --out out/lmd_eval --cache data/cache/lmd
+	bash scripts/with_env.sh python -m lmd_ros.train --train data/perception/meta_train --test data/perception/meta_test --out models/lmd --cache data/cache/lmd
+	bash scripts/with_env.sh python -m lmd_ros.evaluate --train data/perception/meta_train --test data/perception/meta_test --out out/lmd_eval --cache data/cache/lmd --docs-png docs/lmd_reliability.png
 
 lms-models: build $(META_BAGS)
 	bash scripts/with_env.sh python -m lms_ros.train --data data/perception/meta_train --out models/lms --cache data/cache/lms
-	bash scripts/with_env.sh python -m lms_ros.evaluate --data data/perception/meta_test --models models/lms --out out/lms_eval --cache data/cache/lms
+	bash scripts/with_env.sh python -m lms_ros.evaluate --train data/perception/meta_train --test data/perception/meta_test --models models/lms --out out/lms_eval --cache data/cache/lms --docs-figure docs/lms_quality.png --model-card
 
 mimo-models: build $(META_BAGS)
 	bash scripts/with_env.sh python -m mimo_ros.train --data data/perception/meta_train --out models/mimo --cache data/cache/mimo

@@ -21,6 +21,10 @@ setup(
     description=open("package.xml").read().split("<description>")[1].split("</description>")[0],
     license="Apache-2.0",
     entry_points={
-        "console_scripts": ["lms_node = lms_ros.lms_node:main"],
+        "console_scripts": [
+            "lms_node = lms_ros.lms_node:main",
+            "lms-train = lms_ros.train:main",
+            "lms-eval = lms_ros.evaluate:main",
+        ],
     },
 )

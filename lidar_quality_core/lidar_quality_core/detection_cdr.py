@@ -96,6 +96,10 @@ def _class_codes(buf: bytes, raw_bytes: np.ndarray, at: np.ndarray, lengths: np.
     if not len(at):
         return np.zeros(0, dtype=np.int64), []
     width = -(-int(lengths.max()) // 8) * 8
+    if int(at.max()) + 4 + width > len(raw_bytes):
+        # a short string near the end read as wide as the longest one would run past
+        # the buffer (found by fuzzing: a 4096-byte class_id); the excess is masked below
+        raw_bytes = np.concatenate([raw_bytes, np.zeros(width, dtype=np.uint8)])
     chars = _gather(raw_bytes, at + 4, width)
     chars[np.arange(width)[None, :] >= lengths[:, None] - 1] = 0  # NUL and beyond
     words = chars.view(np.uint64)  # (n, width / 8): equal rows <=> equal strings

@@ -309,13 +309,15 @@ class MetaModels:
 def save_pair(out_dir, prefix: str, classifier, regressor, feature_names: Sequence[str], *,
               training_data: dict[str, Any] | None = None,
               classifier_metrics: dict[str, Any] | None = None,
-              regressor_metrics: dict[str, Any] | None = None) -> tuple[Path, Path]:
-    """Save ``<prefix>_classifier.joblib`` and ``<prefix>_regressor.joblib`` with manifests."""
+              regressor_metrics: dict[str, Any] | None = None,
+              compress: int = 0) -> tuple[Path, Path]:
+    """Save ``<prefix>_classifier.joblib`` and ``<prefix>_regressor.joblib`` with manifests
+    (``compress``: joblib zlib level, see ``model_store.save_model``)."""
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cpath, rpath = out / f"{prefix}_classifier.joblib", out / f"{prefix}_regressor.joblib"
     save_model(classifier, cpath, feature_names=list(feature_names), task="classification",
-               training_data=training_data, metrics=classifier_metrics)
+               training_data=training_data, metrics=classifier_metrics, compress=compress)
     save_model(regressor, rpath, feature_names=list(feature_names), task="regression",
-               training_data=training_data, metrics=regressor_metrics)
+               training_data=training_data, metrics=regressor_metrics, compress=compress)
     return cpath, rpath

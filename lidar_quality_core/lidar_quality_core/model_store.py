@@ -232,6 +232,7 @@ def save_model(
     format: str | None = None,
     class_names: Sequence[str] | None = None,
     target_names: Sequence[str] | None = None,
+    compress: int = 0,
 ) -> dict[str, Any]:
     """Write ``model`` to ``path`` and its manifest beside it; returns the manifest.
 
@@ -239,7 +240,8 @@ def save_model(
     to ``*.json`` / ``*.ubj`` and to ``joblib`` otherwise. ``model_id`` defaults to
     ``<file stem>-<first 12 hex of sha256>``. ``class_names`` (multiclass) label the
     probability columns; ``target_names`` (regression) name the outputs of a multi-output
-    regressor.
+    regressor. ``compress`` (0-9, ``joblib`` only): zlib level of the pickle (loading
+    detects it; XGBoost pickles shrink about 4x).
     """
     path = Path(path)
     if task not in TASKS:
@@ -269,7 +271,7 @@ def save_model(
             manifest["classes"] = _multiclass_labels(model, path)
         elif not hasattr(model, "predict"):
             raise ModelStoreError(f"{path.name}: regression model has no predict()")
-        writer = lambda tmp: joblib.dump(model, tmp)  # noqa: E731
+        writer = lambda tmp: joblib.dump(model, tmp, compress=compress)  # noqa: E731
         suffix = ""
     else:
         ext = _NATIVE_EXT[format]

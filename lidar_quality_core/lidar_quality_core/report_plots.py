@@ -132,8 +132,8 @@ def fmt(x, digits: int = 3) -> str:
     return f"{xf:.{digits}f}"
 
 
-def markdown_table(header: Sequence[str], rows: Sequence[Sequence]) -> str:
-    """A GitHub markdown table; cells pass through :func:`fmt`."""
+def markdown_table(header: Sequence[str], rows: Sequence[Sequence], digits: int = 3) -> str:
+    """A GitHub markdown table; cells pass through :func:`fmt` (``digits`` decimals)."""
     lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(fmt(c) for c in r) + " |" for r in rows]
+    lines += ["| " + " | ".join(fmt(c, digits) for c in r) + " |" for r in rows]
     return "\n".join(lines) + "\n"

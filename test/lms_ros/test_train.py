@@ -1,0 +1,86 @@
+"""lms-train: feature sets, grouped cross validation, the CLI end to end, and the node's
+frame processor running the trained models."""
+import json
+
+import numpy as np
+import pytest
+from lidar_quality_core.meta_model import MetaModels
+from lidar_quality_core.model_store import read_manifest
+from lidar_quality_ros.perception_bag import perception_frames
+from lms_data import COLUMNS, perception_bags
+from lms_ros.dataset import build_dataset
+from lms_ros.pipeline import LmsProcessor, LmsSettings
+from lms_ros.train import cross_validate_pair, feature_set, main
+
+SETTINGS = LmsSettings(width=COLUMNS)
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory):
+    return perception_bags(tmp_path_factory.mktemp("lms_train") / "pb", n_sequences=2,
+                           n_frames=4)
+
+
+def test_feature_sets():
+    names = SETTINGS.metric_names()
+    assert feature_set(names, "lms") == list(names)
+    assert feature_set(names, "entropy") == ["mean_E"]
+    nf = feature_set(names, "no_features")
+    gone = [n for n in names if n not in nf]
+    # the 5 point-cloud heatmaps x, y, z, intensity, range x 10 statistics
+    assert len(gone) == 50 and len(nf) == 86 + 2 * 14 - 50
+    assert {n.split("_")[1] for n in gone} == {"x", "y", "z", "i", "r"}
+    for keep in ("mean_E", "var_D_bd", "mean_V_rel_in", "S", "S_rel_in", "SP", "N_car",
+                 "P_road", "P_traffic-sign"):
+        assert keep in nf
+    with pytest.raises(ValueError):
+        feature_set(names, "nope")
+
+
+def test_cross_validation_over_subsequences(bags):
+    ds = build_dataset(bags, SETTINGS, block_frames=2, quiet=True)
+    cv = cross_validate_pair(ds, feature_set(ds.names, "no_features"), n_folds=3)
+    for task, keys in (("classification", {"accuracy", "auroc", "auprc_fp", "ece"}),
+                       ("regression", {"r2", "mae"})):
+        assert keys <= set(cv[task]["val"]) and len(cv[task]["folds"]) == 3
+        assert np.isfinite(cv["oof"][task]).all()
+    # a group (sub-sequence) is never split between folds
+    for g in np.unique(ds.group):
+        assert len(np.unique(cv["fold"][ds.group == g])) == 1
+    # the models learn something: better than the constant on the training folds
+    assert cv["classification"]["train"]["auroc"][0] > 0.8
+    assert cv["regression"]["train"]["r2"][0] > 0.3
+
+
+def test_cli_trains_loadable_models_the_node_runs(bags, tmp_path):
+    out = tmp_path / "models"
+    args = ["--data", str(bags), "--folds", "2", "--block-frames", "2", "--width", str(COLUMNS),
+            "--cache", str(tmp_path / "cache"), "--quiet"]
+    assert main([*args, "--out", str(out)]) == 0
+    cpath, rpath = out / "lms_classifier.joblib", out / "lms_regressor.joblib"
+    card = (out / "MODEL_CARD.md").read_text()
+    assert "lms-train" in card and "cross validation" in card
+    man = read_manifest(cpath)
+    assert man["feature_names"] == list(SETTINGS.metric_names())
+    td = man["training_data"]
+    assert td["n_frames"] == 8 and td["n_sequences"] == 2 and td["settings"]["width"] == COLUMNS
+    assert set(man["metrics"]["cv_val"]) >= {"accuracy", "auroc", "auprc_fp"}
+    assert cpath.stat().st_size + rpath.stat().st_size < 2_000_000
+    models = MetaModels(cpath, rpath, SETTINGS.metric_names())
+    # the node's frame work with these models
+    proc = LmsProcessor(SETTINGS, models)
+    f = next(perception_frames(sorted(bags.iterdir())[0], want=("points", "segmentation")))
+    res = proc.process(f.points, f.segmentation)
+    kept = res.result.kept_ids
+    assert len(kept) > 10
+    assert np.isfinite(res.confidence[kept]).all() and np.isfinite(res.predicted_iou[kept]).all()
+    assert ((res.confidence[kept] >= 0) & (res.confidence[kept] <= 1)).all()
+    # deterministic: the same command gives the same predictions
+    out2 = tmp_path / "again"
+    assert main([*args, "--out", str(out2), "--folds", "0"]) == 0
+    again = MetaModels(out2 / "lms_classifier.joblib", out2 / "lms_regressor.joblib",
+                       SETTINGS.metric_names())
+    X = res.result.features
+    for a, b in zip(models.predict(X), again.predict(X)):
+        np.testing.assert_array_equal(a, b)
+    json.dumps(man)  # the manifest holds plain JSON
