@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator
+from typing import Iterator, Sequence
 
 from .bag_io import bag_topics, read_bag
 
@@ -109,3 +109,25 @@ def perception_frames(bag: Path | str, *, want=("points", "detections", "proposa
         else:
             f.messages[key] = msg
     yield from flush(0)
+
+
+def resolve_bags(paths: Sequence) -> list[Path]:
+    """Bag directories of ``paths``: a bag itself (has ``metadata.yaml``) or a directory
+    whose sub-directories are bags (e.g. ``data/perception/meta_train``), sorted."""
+    out = []
+    for p in map(Path, paths):
+        if (p / "metadata.yaml").exists():
+            out.append(p)
+            continue
+        subs = sorted(q for q in p.iterdir() if (q / "metadata.yaml").exists()) if p.is_dir() else []
+        if not subs:
+            raise FileNotFoundError(f"{p}: not a rosbag2 directory and holds none")
+        out.extend(subs)
+    return out
+
+
+def bag_group(bag: Path | str) -> str:
+    """Group name of a bag (the unit of grouped splits): ``<parent>/<name>``, e.g.
+    ``meta_train/seq_03``."""
+    bag = Path(bag)
+    return f"{bag.parent.name}/{bag.name}" if bag.parent.name else bag.name

@@ -32,12 +32,13 @@ import dataclasses
 import hashlib
 import json
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+from lidar_quality_core.progress import Progress
+from lidar_quality_ros.perception_bag import bag_group, resolve_bags
 
 __all__ = ["TP_IOU", "KITTI_TYPES", "LmdDataset", "Progress", "resolve_bags", "bag_group",
            "load_bags", "load_kitti", "read_kitti_objects", "read_calib", "kitti_to_lidar",
@@ -50,32 +51,6 @@ CACHE_VERSION = 1
 #: models' class_names they are invalid detections, but count as ground truth).
 KITTI_TYPES = {"Car": "car", "Van": "truck", "Truck": "truck", "Pedestrian": "pedestrian",
                "Person_sitting": "pedestrian", "Cyclist": "cyclist"}
-
-
-class Progress:
-    """A one-line progress bar on stderr (``enabled=False``: silent)."""
-
-    def __init__(self, label: str, total: int | None, enabled: bool = True):
-        self.label, self.total, self.enabled = label, total, enabled
-        self.done, self.t0 = 0, time.monotonic()
-
-    def update(self, n: int = 1, note: str = "") -> None:
-        self.done += n
-        if not self.enabled:
-            return
-        rate = self.done / max(time.monotonic() - self.t0, 1e-9)
-        if self.total:
-            fill = int(30 * min(self.done / self.total, 1.0))
-            bar = f"[{'#' * fill}{'.' * (30 - fill)}] {self.done}/{self.total}"
-        else:
-            bar = f"{self.done}"
-        sys.stderr.write(f"\r{self.label} {bar} ({rate:.1f}/s) {note}"[:160])
-        sys.stderr.flush()
-
-    def close(self) -> None:
-        if self.enabled:
-            sys.stderr.write("\n")
-            sys.stderr.flush()
 
 
 # ---------------------------------------------------------------------------- dataset
@@ -359,27 +334,6 @@ def _cached(cache_dir, name, settings_list, source_key, build, progress):
 
 
 # ---------------------------------------------------------------------------- bags
-def resolve_bags(paths: Sequence) -> list[Path]:
-    """Bag directories of ``paths``: a bag itself (has ``metadata.yaml``) or a directory
-    whose sub-directories are bags (e.g. ``data/perception/meta_train``), sorted."""
-    out = []
-    for p in map(Path, paths):
-        if (p / "metadata.yaml").exists():
-            out.append(p)
-            continue
-        subs = sorted(q for q in p.iterdir() if (q / "metadata.yaml").exists()) if p.is_dir() else []
-        if not subs:
-            raise FileNotFoundError(f"{p}: not a rosbag2 directory and holds none")
-        out.extend(subs)
-    return out
-
-
-def bag_group(bag: Path) -> str:
-    """Group name of a bag: ``<parent>/<name>`` (e.g. ``meta_train/seq_03``)."""
-    bag = Path(bag)
-    return f"{bag.parent.name}/{bag.name}" if bag.parent.name else bag.name
-
-
 def _read_bag(bag: Path, settings_list, topics, progress: bool) -> dict:
     from lidar_quality_core.boxes import detections_to_arrays
     from lidar_quality_ros.bag_io import bag_info

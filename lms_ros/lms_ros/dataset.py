@@ -42,16 +42,16 @@ import dataclasses
 import hashlib
 import json
 import sys
-import time
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
+from lidar_quality_core.progress import Progress
 
 __all__ = ["CACHE_VERSION", "DEFAULT_BLOCK_FRAMES", "Source", "SegmentDataset", "code_version",
            "discover_sources", "subsequence_groups", "frame_rows", "source_frames",
-           "sequence_rows", "build_dataset", "load_frame", "Progress"]
+           "sequence_rows", "build_dataset", "load_frame"]
 
 CACHE_VERSION = 1
 DEFAULT_BLOCK_FRAMES = 10
@@ -118,26 +118,6 @@ def subsequence_groups(sequence, frame, block_frames: int = DEFAULT_BLOCK_FRAMES
         return np.zeros(0, np.int32)
     key = seq * (int(block.max()) + 1) + block
     return np.unique(key, return_inverse=True)[1].astype(np.int32).reshape(-1)
-
-
-class Progress:
-    """A one-line progress bar on stderr (``quiet``: nothing)."""
-
-    def __init__(self, total: int, label: str, quiet: bool = False):
-        self.total, self.label, self.quiet = max(int(total), 1), label, quiet
-        self.t0 = time.monotonic()
-
-    def __call__(self, done: int, total: int | None = None, note: str = "") -> None:
-        if self.quiet:
-            return
-        total = self.total if total is None else max(int(total), 1)
-        fill = int(30 * done / total)
-        rate = done / max(time.monotonic() - self.t0, 1e-9)
-        sys.stderr.write(f"\r{self.label} [{'#' * fill}{'.' * (30 - fill)}] {done}/{total} "
-                         f"({rate:.1f}/s) {note}")
-        if done >= total:
-            sys.stderr.write("\n")
-        sys.stderr.flush()
 
 
 @dataclass
@@ -430,7 +410,7 @@ def build_dataset(paths, settings=None, *, probabilities_root=None,
             if not quiet:
                 sys.stderr.write(f"{src.name}: {len(part)} segments (cached {cpath.name})\n")
         else:
-            bar = Progress(_frame_count(src), f"[{k + 1}/{len(sources)}] {src.name}", quiet)
+            bar = Progress(f"[{k + 1}/{len(sources)}] {src.name}", _frame_count(src), not quiet)
             part = sequence_rows(src, settings, ignore_label=ignore_label,
                                  ring_from=ring_from, progress=bar)
             if cpath is not None:

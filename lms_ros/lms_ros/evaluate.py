@@ -44,8 +44,9 @@ import numpy as np
 
 from lidar_quality_core import meta_model
 from lidar_quality_core import report_plots as rp
+from lidar_quality_core.progress import Progress
 
-from .dataset import Progress, SegmentDataset, discover_sources, load_frame
+from .dataset import SegmentDataset, discover_sources, load_frame
 from .train import (FEATURE_SETS, PREFIX, add_data_arguments, cross_validate_pair,
                     data_summary, dataset_from_args, feature_set, fit_pair, settings_from_args,
                     task_metrics)
@@ -62,7 +63,7 @@ def table1(ds: SegmentDataset, *, kind: str = "xgboost", n_folds: int = 10, seed
     ``naive_accuracy``."""
     out = {}
     for s in FEATURE_SETS:
-        bar = Progress(2 * n_folds, f"CV {SET_LABELS[s]}", quiet)
+        bar = Progress(f"CV {SET_LABELS[s]}", 2 * n_folds, not quiet)
         out[s] = cross_validate_pair(ds, feature_set(ds.names, s), kind=kind, n_folds=n_folds,
                                      seed=seed, progress=bar)
     p = float(ds.tp.mean())
@@ -85,13 +86,13 @@ def greedy(ds: SegmentDataset, *, kind: str = "linear", score_kind: str = "xgboo
     out = {}
     for task in ("classification", "regression"):
         y = ds.tp.astype(float) if task == "classification" else ds.iou_adj
-        bar = Progress(steps, f"greedy {task}", quiet)
+        bar = Progress(f"greedy {task}", steps, not quiet)
         g = meta_model.greedy_selection(sub.X, y[rows], ds.names, sub.group, task=task,
                                         kind=kind, n_folds=search_folds, max_features=steps,
                                         min_gain=-np.inf, seed=seed, progress=bar)
         rescore = []
         if score_kind:
-            bar = Progress(len(g.selected), f"greedy {task}: {score_kind} re-score", quiet)
+            bar = Progress(f"greedy {task}: {score_kind} re-score", len(g.selected), not quiet)
             for k in range(1, len(g.selected) + 1):
                 X = ds.columns(g.selected[:k])
                 vals = []

@@ -34,8 +34,9 @@ import numpy as np
 
 from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as qm
+from lidar_quality_core.progress import Progress
 
-from .dataset import DEFAULT_BLOCK_FRAMES, RING_FROM, Progress, SegmentDataset, build_dataset
+from .dataset import DEFAULT_BLOCK_FRAMES, RING_FROM, SegmentDataset, build_dataset
 
 __all__ = ["FEATURE_MEASURE_PATTERN", "FEATURE_SETS", "feature_set", "cross_validate_pair",
            "fit_pair", "train", "main"]
@@ -204,7 +205,7 @@ def train(ds: SegmentDataset, out, *, kind: str = "xgboost", n_folds: int = 10,
     data = data_summary(ds)
     cv = None
     if n_folds > 1:
-        bar = Progress(2 * n_folds, "cross validation", quiet)
+        bar = Progress("cross validation", 2 * n_folds, not quiet)
         cv = cross_validate_pair(ds, kind=kind, n_folds=n_folds, seed=seed, n_jobs=n_jobs,
                                  progress=bar)
     t0 = time.monotonic()

@@ -349,7 +349,8 @@ def read_bag(bag, *, settings: MimoSettings | None = None, progress: bool = True
     """One perception bag -> :class:`MimoDataset` (no cache)."""
     from lidar_quality_ros.bag_io import bag_info
     from lidar_quality_ros.perception_bag import DEFAULT_TOPICS, head_count, perception_frames
-    from lmd_ros.dataset import Progress, bag_group
+    from lidar_quality_core.progress import Progress
+    from lidar_quality_ros.perception_bag import bag_group
 
     from .pipeline import frame_features, head_detections
 
@@ -385,8 +386,8 @@ def read_bag(bag, *, settings: MimoSettings | None = None, progress: bool = True
 
 
 def resolve_bags(paths: Sequence) -> list[Path]:
-    """Bag directories of ``paths`` (a bag, or a directory of bags; see ``lmd_ros.dataset``)."""
-    from lmd_ros.dataset import resolve_bags as resolve
+    """Bag directories of ``paths`` (a bag, or a directory of bags)."""
+    from lidar_quality_ros.perception_bag import resolve_bags as resolve
 
     return resolve(paths)
 

@@ -24,6 +24,7 @@ import numpy as np
 
 from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as qm
+from lidar_quality_core.progress import Progress
 
 from .dataset import TP_IOU, MimoDataset, load_bags
 
@@ -87,11 +88,7 @@ def train(data: Sequence, out_dir, *, cache_dir=None, kind: str = "xgboost", fol
     summary = {"data": ds.summary(), "baseline_merged_score": _baseline(ds), "pairs": [],
                "heads": (ds.info.get("settings") or {}).get("num_heads")}
     for use_points in (False, True):
-        def bar(i, n, label=PREFIXES[use_points]):
-            if not quiet:
-                sys.stderr.write(f"\r{label}: cross validation fold {i}/{n}  ")
-                if i == n:
-                    sys.stderr.write("\n")
+        bar = Progress(f"{PREFIXES[use_points]}: cross validation folds", None, not quiet)
         summary["pairs"].append(train_pair(ds, use_points, out, kind=kind, folds=folds,
                                            seed=seed, progress=bar))
     summary["seconds"] = time.monotonic() - t0

@@ -4,7 +4,7 @@ import pytest
 from lidar_quality_core.boxes import arrays_to_detections
 from lidar_quality_core.pointcloud import create_xyz_cloud
 from lidar_quality_ros.bag_io import BagWriter
-from lidar_quality_ros.perception_bag import head_count, perception_frames
+from lidar_quality_ros.perception_bag import bag_group, head_count, perception_frames, resolve_bags
 from std_msgs.msg import Header
 
 DET = "vision_msgs/msg/Detection3DArray"
@@ -47,3 +47,16 @@ def test_missing_required_topic(tmp_path):
         list(perception_frames(tmp_path / "b", topics={"points": "/other"}))
     with pytest.raises(ValueError, match="unknown"):
         list(perception_frames(tmp_path / "b", want=("nope",)))
+
+
+def test_resolve_bags_and_groups(tmp_path):
+    for name in ("seq_01", "seq_00"):
+        (tmp_path / "split" / name).mkdir(parents=True)
+        (tmp_path / "split" / name / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    (tmp_path / "split" / "notes").mkdir()
+    bags = resolve_bags([tmp_path / "split"])
+    assert [b.name for b in bags] == ["seq_00", "seq_01"]
+    assert resolve_bags([bags[1]]) == [bags[1]]
+    assert bag_group(bags[1]) == "split/seq_01"
+    with pytest.raises(FileNotFoundError, match="not a rosbag2"):
+        resolve_bags([tmp_path / "split" / "notes"])
