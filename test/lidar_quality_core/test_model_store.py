@@ -497,3 +497,52 @@ def test_models_dir(monkeypatch, tmp_path):
     assert (models_dir().parent / "lidar_quality_core").is_dir()
     monkeypatch.setenv("LQ_MODELS_DIR", str(tmp_path))
     assert models_dir() == tmp_path
+
+
+# -- the shipped models under tampering (issue 8 hardening) --------------------------------
+
+SHIPPED = sorted(Path(__file__).resolve().parents[2].joinpath("models").glob("*/*.joblib"))
+
+
+def _copy_pair(path: Path, tmp_path: Path) -> Path:
+    dst = tmp_path / path.name
+    dst.write_bytes(path.read_bytes())
+    manifest_path_for(dst).write_bytes(manifest_path_for(path).read_bytes())
+    return dst
+
+
+def test_models_are_shipped():
+    assert {p.parent.name for p in SHIPPED} >= {"lmd", "lms", "mimo"}
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_shipped_model_one_byte_changed_is_refused(path, tmp_path, no_unpickle):
+    dst = _copy_pair(path, tmp_path)
+    raw = bytearray(dst.read_bytes())
+    raw[len(raw) // 3] = (raw[len(raw) // 3] + 1) % 256
+    dst.write_bytes(bytes(raw))
+    with pytest.raises(ModelStoreError, match=rf"{dst.name}.*SHA-256 mismatch"):
+        load_model(dst, expected_features=_manifest(path)["feature_names"])
+
+
+@pytest.mark.parametrize("path", SHIPPED, ids=lambda p: f"{p.parent.name}/{p.name}")
+def test_shipped_model_with_a_manifest_naming_other_features_is_refused(path, tmp_path,
+                                                                        no_unpickle):
+    dst = _copy_pair(path, tmp_path)
+    names = _manifest(path)["feature_names"]
+    _rewrite_manifest(dst, feature_names=["range_m"] + names[1:])
+    with pytest.raises(ModelStoreError, match=rf"{dst.name}.*feature schema mismatch.*range_m"):
+        load_model(dst, expected_features=names)
+
+
+def test_shipped_lms_model_for_another_class_count_is_refused(no_unpickle):
+    from lms_ros.pipeline import LmsSettings, default_model_paths
+
+    settings = LmsSettings()
+    fewer = LmsSettings(class_names=settings.class_names[:-1]).metric_names()
+    for path in default_model_paths():
+        with pytest.raises(ModelStoreError) as ei:
+            load_model(path, expected_features=fewer)
+        msg = str(ei.value)
+        assert path.name in msg and "feature schema mismatch" in msg
+        assert "extra in model" in msg and settings.class_names[-1] in msg
