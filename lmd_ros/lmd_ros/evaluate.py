@@ -32,6 +32,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_quality_core import meta_model
+from lidar_quality_core.jsonable import jsonable
 from lidar_quality_core import metrics as M
 from lidar_quality_core import report_plots as RP
 
@@ -144,20 +145,6 @@ def _bar_png(path, names, values, *, xlabel, title):
 def _strip(d):
     """Metrics without the prediction arrays (JSON)."""
     return {k: v for k, v in d.items() if k not in ("confidence", "iou")}
-
-
-def _jsonable(o):
-    if isinstance(o, dict):
-        return {str(k): _jsonable(v) for k, v in o.items()}
-    if isinstance(o, (list, tuple)):
-        return [_jsonable(v) for v in o]
-    if isinstance(o, (np.floating, float)):
-        return float(o) if np.isfinite(o) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    if isinstance(o, np.ndarray):
-        return _jsonable(o.tolist())
-    return o
 
 
 def evaluate(train_sets: dict, test_sets: dict, out: Path, *, mode: str = "threshold",
@@ -302,7 +289,7 @@ def evaluate(train_sets: dict, test_sets: dict, out: Path, *, mode: str = "thres
     S["seconds"] = time.monotonic() - t_start
     S["pngs"] = {k: Path(v).name if Path(v).parent == out else str(Path(v).relative_to(out))
                  for k, v in pngs.items()}
-    (out / "summary.json").write_text(json.dumps(_jsonable(S), indent=1) + "\n")
+    (out / "summary.json").write_text(json.dumps(jsonable(S), indent=1) + "\n")
     (out / "report.md").write_text(_report(S, kinds, cv_kinds, table2_kind, main_kind, cv_folds))
     log(f"report: {out / 'report.md'} ({S['seconds']:.0f} s)")
     return S

@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_quality_core import meta_model
+from lidar_quality_core.jsonable import jsonable
 from lidar_quality_core import report_plots as rp
 from lidar_quality_core.progress import Progress
 
@@ -410,16 +411,6 @@ def other_rows(a, settings) -> dict:
             "regression": task_metrics("regression", ds.iou_adj, piou)}
 
 
-def _json(o):
-    if isinstance(o, np.generic):
-        return o.item()
-    if isinstance(o, np.ndarray):
-        return o.tolist()
-    if isinstance(o, Path):
-        return str(o)
-    raise TypeError(type(o).__name__)
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="lms-eval", description=__doc__.split("\n\n")[0])
     ap.add_argument("--train", type=Path, nargs="+",
@@ -535,7 +526,7 @@ def main(argv=None) -> int:
             res["figures"][f"greedy_{task}.png"] = f"Greedy selection ({task})"
     res["seconds"] = round(time.monotonic() - t_start, 1)
     write_report(out, res)
-    (out / "summary.json").write_text(json.dumps(res, indent=2, default=_json) + "\n")
+    (out / "summary.json").write_text(json.dumps(jsonable(res), indent=2) + "\n")
     if not a.quiet:
         sys.stderr.write(f"wrote {out / 'report.md'}, {out / 'summary.json'}\n")
     if "acceptance" in res and not a.quiet:

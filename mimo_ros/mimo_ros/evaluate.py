@@ -62,6 +62,7 @@ import numpy as np
 from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as qm
 from lidar_quality_core import report_plots as rp
+from lidar_quality_core.jsonable import jsonable
 from lidar_quality_core.detection_eval import (KITTI_IOU_THRESHOLDS, Partition, fp_partition,
                                                match_frame, summarize)
 
@@ -559,20 +560,6 @@ def write_report(out: Path, res: dict, figures: dict) -> Path:
     return path
 
 
-def _json(o):
-    if isinstance(o, dict):
-        return {str(k): _json(v) for k, v in o.items() if not str(k).startswith("_")}
-    if isinstance(o, (list, tuple)):
-        return [_json(v) for v in o]
-    if isinstance(o, np.ndarray):
-        return _json(o.tolist())
-    if isinstance(o, (np.floating, float)):
-        return float(o) if np.isfinite(o) else None
-    if isinstance(o, np.integer):
-        return int(o)
-    return o
-
-
 def update_model_card(card: Path, res: dict, command: str) -> None:
     """Replace the held-out section of ``MODEL_CARD.md`` (between the mimo-eval markers)."""
     text = card.read_text()
@@ -632,7 +619,7 @@ def run(data, models_dir, out, *, cache_dir=None, docs=None, model_card=None,
     figures["qualitative"] = out / "mimo_qualitative.png"
     res["qualitative"] = qualitative_png(figures["qualitative"], ds, frame, models)
     res["seconds"] = time.monotonic() - t0
-    (out / "summary.json").write_text(json.dumps(_json(res), indent=1, sort_keys=True))
+    (out / "summary.json").write_text(json.dumps(jsonable(res, drop_private=True), indent=1, sort_keys=True))
     write_report(out, res, figures)
     if docs:
         Path(docs).mkdir(parents=True, exist_ok=True)

@@ -14,6 +14,8 @@ import json
 import time
 from pathlib import Path
 
+from lidar_quality_core.jsonable import jsonable
+
 PARTS = ("segmenter", "detector", "multihead")
 
 
@@ -44,31 +46,17 @@ def main(argv=None) -> int:
         log("== detector ==")
         train_detector(a.out, log=log)
         r = evaluate_detector(a.out, log=log)
-        quality["detector"] = _jsonable(r)
+        quality["detector"] = jsonable(r)
     if "multihead" in a.only:
         from .multihead import evaluate_multihead, train_multihead
 
         log(f"== multi-head detector ({a.heads} heads) ==")
         train_multihead(a.out, num_heads=a.heads, log=log)
         r = evaluate_multihead(a.out, log=log)
-        quality["multihead"] = _jsonable(r)
+        quality["multihead"] = jsonable(r)
     quality_path.write_text(json.dumps(quality, indent=2, sort_keys=True) + "\n")
     log(f"done in {time.monotonic() - t_all:.0f} s; figures in {quality_path}")
     return 0
-
-
-def _jsonable(d):
-    import numpy as np
-
-    if isinstance(d, dict):
-        return {str(k): _jsonable(v) for k, v in d.items()}
-    if isinstance(d, (list, tuple)):
-        return [_jsonable(v) for v in d]
-    if isinstance(d, np.generic):
-        return d.item()
-    if isinstance(d, np.ndarray):
-        return d.tolist()
-    return d
 
 
 if __name__ == "__main__":

@@ -16,24 +16,15 @@ def _frames(seed: int, n_frames: int):
 
 
 def perception_bags(root: Path, n_sequences: int = 2, n_frames: int = 4, seed: int = 5) -> Path:
-    """``root/seq_NN``: perception bags (points, points_gt, segmentation) of
+    """``root/bags/seq_NN``: perception bags (points, points_gt, segmentation) of
     ``n_sequences`` simulated sequences."""
-    from lidar_sim import classes
-    from lidar_sim.bag import SimBagWriter
-    from reference_perception.cli import Perception, process_bag
+    from reference_perception.cli import Perception
 
-    perception = Perception(detector=False, segmenter=True, heads=0)
-    root.mkdir(parents=True, exist_ok=True)
-    for s in range(n_sequences):
-        sim = root / f"sim_{s:02d}"
-        with SimBagWriter(sim) as bag:
-            for f in _frames(seed * 100 + s, n_frames):
-                bag.write_frame(f.stamp_ns, xyz=f.xyz, intensity=f.intensity, ring=f.ring,
-                                label=f.semantic, instance=f.instance, gt_boxes=f.gt_boxes,
-                                gt_class_names=[classes.class_name(c) for c in f.gt_class],
-                                gt_ids=[str(k) for k in f.gt_instance])
-        process_bag(sim, root / "bags" / f"seq_{s:02d}", perception, quiet=True)
-    return root / "bags"
+    from perception_bags import simulated_perception_bags
+
+    return simulated_perception_bags(root, Perception(detector=False, segmenter=True, heads=0),
+                                     n_sequences=n_sequences, n_frames=n_frames, seed=seed,
+                                     columns=COLUMNS)
 
 
 def semantickitti_dir(root: Path, n_frames: int = 3, seed: int = 9, sequence: int = 8,
