@@ -92,9 +92,13 @@ def test_clock_follows_log_times_and_recorded_clock_is_not_replayed(ros, tmp_pat
     values = [_ns(c) for c in clock.messages]
     assert all(b >= a for a, b in zip(values, values[1:])), "clock went backwards"
     assert values[0] >= T0 and values[-1] == sent["/dets"][-1][0]  # bogus recorded zeros absent
-    # one per distinct log time, plus ticks in between (50 Hz over ~1 s)
+    # one per distinct log time, plus ticks in between (50 Hz over ~1 s while the player
+    # waits for the next message; a player running late on a loaded machine waits less,
+    # so only their presence is asserted)
     stamps = {s for msgs in sent.values() for s, _ in msgs}
-    assert stamps <= set(values) and len(values) > len(stamps) + 20
+    assert stamps <= set(values)
+    ticks = sorted(set(values) - stamps)
+    assert ticks and all(T0 < t < sent["/dets"][-1][0] for t in ticks)
 
 
 def _ns(clock_msg):
