@@ -1,9 +1,15 @@
 """Benchmark runner: ``python bench/run.py [--out FILE] [--only PREFIX] [--reps N]``.
 
-Every ``bench/bench_*.py`` module exposes ``figures()``, a generator of
-``(name, fn)`` pairs (set-up done before the yield, ``fn()`` = one repetition), or of
-``(name, fn, "percentiles")`` for figures reported as ``name_p50`` / ``name_p99``.
-Each figure is the median (or the percentiles) over ``reps`` timed repetitions, in ms.
+Every ``bench/bench_*.py`` module exposes ``figures()``, a generator of items:
+
+* ``(name, fn)``: set-up done before the yield, ``fn()`` = one repetition; the figure is
+  the median over ``reps`` timed repetitions, in ms;
+* ``(name, fn, "percentiles")``: the same, reported as ``name_p50`` / ``name_p99``;
+* ``(name, fn, "figures")``: a whole experiment (e.g. ``bench_e2e``): ``fn()`` runs once,
+  untimed, and returns ``{figure name: value}``, each name starting with ``name.``.
+
+``--only PREFIX`` runs the items whose name starts with it (an experiment also when the
+prefix starts with its name, keeping only the figures that match).
 """
 from __future__ import annotations
 
@@ -55,10 +61,21 @@ def main(argv=None) -> int:
     for path in sorted(HERE.glob("bench_*.py")):
         for item in _load(path).figures():
             name, fn = item[0], item[1]
+            kind = item[2] if len(item) > 2 else "median"
+            if kind == "figures":
+                if not (name.startswith(args.only) or args.only.startswith(name)):
+                    continue
+                t0 = time.perf_counter()
+                figs = {k: v for k, v in fn().items() if k.startswith(args.only)}
+                results.update(figs)
+                for k, v in figs.items():
+                    print(f"{k:45s} {v}", flush=True)
+                print(f"{name:45s} ({time.perf_counter() - t0:.0f} s)", flush=True)
+                continue
             if not name.startswith(args.only):
                 continue
             t = time_fn(fn, max(args.reps, 50))
-            if len(item) > 2 and item[2] == "percentiles":
+            if kind == "percentiles":
                 results[f"{name}_p50"] = round(float(np.percentile(t, 50)), 4)
                 results[f"{name}_p99"] = round(float(np.percentile(t, 99)), 4)
             else:

@@ -1,0 +1,140 @@
+"""End-to-end figures over DDS (issue 8): the three nodes as processes, fed 120k-point
+frames, latency from publication to reception, drops, largest sustained rate.
+
+One experiment (``lidar_quality_ros.load_test``: the installed node executables with
+their installed config, pre-serialized synthetic frames published raw over the loopback
+Fast DDS profile, outputs matched by stamp in the publishing process), run once by
+``bench/run.py`` (item kind ``"figures"``):
+
+1. lmd_node, lms_node and mimo_node at once, 10 Hz, ``DURATION`` = 60 s measured after a
+   ``WARMUP`` of 5 s (not counted). Per node (``lmd``, ``lms``, ``mimo``):
+   ``e2e.<node>.latency_ms_p50`` / ``_p99`` (from the start of the publication of the
+   node's input frame to the reception of its main output: LMD ``output/detections``,
+   LMS ``output/segments``, MIMO ``output/detections``; goals p99 <= 30 / 80 / 10 ms) and
+   ``e2e.<node>.dropped`` (frames published without output; goal 0 for all three at once).
+2. Each node alone: the rate stepped through ``RATES`` for ``WINDOW`` = 10 s each, until a
+   step drops a frame (or the publisher cannot keep the rate: then the figure is a lower
+   bound, the report says so); ``e2e.<node>.max_rate_hz`` = the highest rate with no
+   dropped frame (0: not even 10 Hz).
+
+The whole report (every step's latency, the publisher's timing, the nodes' own
+diagnostics, CPU and memory) goes to ``out/bench/e2e/report.json``, node logs beside it.
+About 5-6 minutes on the 2-core machine. As a CLI, shorter variants::
+
+    bash scripts/with_env.sh python bench/bench_e2e.py --duration 15 --window 5 --rates 10,20
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+NAMES = ("lmd", "lms", "mimo")
+DURATION = 60.0
+WARMUP = 5.0
+RATE = 10.0
+RATES = (10, 15, 20, 30, 40, 60, 80, 100)
+WINDOW = 10.0
+OUT = ROOT / "out" / "bench" / "e2e"
+
+
+def _say(s: str) -> None:
+    print(f"  [e2e] {s}", file=sys.stderr, flush=True)
+
+
+def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=RATES,
+               window=WINDOW, out_dir: Path = OUT, n_points: int = 120_000) -> tuple[dict, dict]:
+    """Run both parts; returns (figures, report)."""
+    from lidar_quality_ros.load_test import LoadTest, max_sustained_rate, step_ok
+
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    t_start = time.monotonic()
+    figures: dict[str, float] = {}
+    report: dict = {"n_points": n_points, "load_average_start": os.getloadavg(),
+                    "fastdds_profile": os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE")}
+
+    # 1. all nodes at once
+    with LoadTest(names, out_dir, n_points=n_points, log_prefix="all_", say=_say) as lt:
+        if warmup > 0:
+            lt.run(warmup, rate)
+        _say(f"{', '.join(names)} at once: {duration:.0f} s at {rate:g} Hz")
+        r = lt.run(duration, rate, progress_every=30.0)
+        r["frame_bytes"] = lt.frame_bytes()
+    r["exit_codes"] = dict(lt.exit_codes)
+    report["together"] = r
+    for n, e in r["nodes"].items():
+        figures[f"e2e.{n}.latency_ms_p50"] = e["latency_ms_p50"]
+        figures[f"e2e.{n}.latency_ms_p99"] = e["latency_ms_p99"]
+        figures[f"e2e.{n}.dropped"] = e["dropped"]
+        _say(f"{n}: {e['received']}/{e['published']} received, latency p50 "
+             f"{e['latency_ms_p50']} ms p99 {e['latency_ms_p99']} ms (node processing p50 "
+             f"{e['processing_ms_p50']} p99 {e['processing_ms_p99']} ms), CPU {e['cpu_pct']} %")
+
+    # 2. each node alone, stepping the rate
+    report["max_rate"] = {}
+    for n in names:
+        with LoadTest([n], out_dir, n_points=n_points, log_prefix=f"rate_{n}_", say=_say) as lt:
+            def trial(hz, lt=lt, n=n):
+                r = lt.run(window, hz, names=[n])
+                ok, why = step_ok(r, n)
+                e = r["nodes"][n]
+                _say(f"{n} alone at {hz:g} Hz for {window:g} s: {why} (latency p50 "
+                     f"{e['latency_ms_p50']} p99 {e['latency_ms_p99']} ms, achieved "
+                     f"{r['achieved_rate_hz']} Hz)")
+                keep = ("published", "received", "dropped", "latency_ms_p50",
+                        "latency_ms_p99", "processing_ms_p50", "processing_ms_p99",
+                        "diag_dropped_reasons", "cpu_pct")
+                return ok, why, {"achieved_rate_hz": r["achieved_rate_hz"],
+                                 "late_ticks": r["late_ticks"], **{k: e[k] for k in keep}}
+            best, steps = max_sustained_rate(trial, rates)
+        last = steps[-1] if steps else {}
+        report["max_rate"][n] = {
+            "max_rate_hz": best, "window_s": window, "steps": steps,
+            "exit_code": lt.exit_codes.get(n),
+            "lower_bound": bool(last.get("ok")) or "publisher" in str(last.get("why", "")),
+        }
+        figures[f"e2e.{n}.max_rate_hz"] = best
+    report["load_average_end"] = os.getloadavg()
+    report["elapsed_s"] = round(time.monotonic() - t_start, 1)
+    report["figures"] = figures
+    (out_dir / "report.json").write_text(json.dumps(report, indent=1) + "\n")
+    _say(f"wrote {out_dir / 'report.json'} ({report['elapsed_s']:.0f} s)")
+    return figures, report
+
+
+def figures():
+    yield "e2e", lambda: experiment()[0], "figures"
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--nodes", default=",".join(NAMES))
+    ap.add_argument("--duration", type=float, default=DURATION,
+                    help="seconds of the all-nodes run")
+    ap.add_argument("--warmup", type=float, default=WARMUP)
+    ap.add_argument("--rate", type=float, default=RATE)
+    ap.add_argument("--rates", default=",".join(map(str, RATES)),
+                    help="rates stepped through per node alone ('' : skip)")
+    ap.add_argument("--window", type=float, default=WINDOW, help="seconds per rate step")
+    ap.add_argument("--points", type=int, default=120_000)
+    ap.add_argument("--out", default=str(OUT), help="directory of report.json and node logs")
+    args = ap.parse_args(argv)
+    names = [n.strip() for n in args.nodes.split(",") if n.strip()]
+    rates = [float(x) for x in args.rates.split(",") if x.strip()]
+    figs, report = experiment(names, args.duration, args.warmup, args.rate, rates,
+                              args.window, Path(args.out), args.points)
+    for k, v in figs.items():
+        print(f"{k:32s} {v}")
+    together = report["together"]["nodes"]
+    ok = all(e["alive"] for e in together.values()) and all(
+        c == 0 for c in report["together"]["exit_codes"].values())
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

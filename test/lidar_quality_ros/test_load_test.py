@@ -1,0 +1,100 @@
+"""lidar_quality_ros.load_test: memory growth, output matching by stamp, the rate ladder;
+plus a short run of bench/bench_e2e.py's experiment with mimo_node alone (process, frames
+over DDS, figures present; no timing asserted: the machine may be loaded)."""
+import importlib.util
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+from lidar_quality_ros import fuzz, load_test
+from lidar_quality_ros.fuzz import DETECTIONS, FrameTemplate, InputSpec
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_memory_growth_after_warmup():
+    t = np.arange(0.0, 100.0)
+    kb = np.where(t < 20, 100_000 + 5000 * t, 200_000.0)  # grows during warm-up only
+    kb[-10:] = 210_000.0
+    m = load_test.memory_growth(t, kb, warmup_s=30.0, window_s=5.0)
+    assert m["samples"] == 100
+    assert m["rss_warm_mb"] == pytest.approx(200_000 / 1024, abs=0.1)
+    assert m["rss_end_mb"] == pytest.approx(210_000 / 1024, abs=0.1)
+    assert m["growth_pct"] == pytest.approx(5.0)
+    assert m["rss_max_mb"] == pytest.approx(210_000 / 1024, abs=0.1)
+    assert m["slope_mb_per_min"] > 0
+    assert load_test.memory_growth(t[:5], kb[:5], warmup_s=30.0, window_s=5.0) == {"samples": 5}
+
+
+def test_process_figures_of_this_process():
+    assert load_test.rss_kb(os.getpid()) > 1000
+    assert load_test.cpu_seconds(os.getpid()) > 0
+    assert load_test.rss_kb(2**22 + 12345) is None  # above pid_max: no such process
+
+
+def test_output_log_matches_by_stamp():
+    t = FrameTemplate([InputSpec("input/detections", DETECTIONS)], n_points=200, n_objects=3,
+                      n_proposals=5)
+    data = t.serialized("input/detections")
+    log = load_test.OutputLog()
+    for ns in (5 * 10**9 + 7, 6 * 10**9, 5 * 10**9 + 7):
+        log(fuzz.restamp_bytes(data, ns))
+    assert set(log.snapshot()) == {5 * 10**9 + 7, 6 * 10**9}
+    assert log.duplicates == 1
+    assert log.count([6 * 10**9, 7 * 10**9]) == 1
+
+
+def test_rate_ladder_stops_at_the_first_failure():
+    seen = []
+
+    def trial(hz):
+        seen.append(hz)
+        return hz <= 20, "ok" if hz <= 20 else "3 dropped", {"latency_ms_p99": hz}
+    best, steps = load_test.max_sustained_rate(trial, (10, 15, 20, 30, 40))
+    assert best == 20 and seen == [10, 15, 20, 30]
+    assert [s["ok"] for s in steps] == [True, True, True, False]
+    assert steps[-1]["why"] == "3 dropped" and steps[-1]["latency_ms_p99"] == 30
+    assert load_test.max_sustained_rate(lambda hz: (False, "x", {}), (10, 20))[0] == 0.0
+
+
+def test_step_ok_needs_no_drop_and_the_rate():
+    def run(dropped=0, achieved=20.0, alive=True):
+        return {"rate_hz": 20.0, "achieved_rate_hz": achieved,
+                "nodes": {"lmd": {"dropped": dropped, "alive": alive}}}
+    assert load_test.step_ok(run(), "lmd") == (True, "ok")
+    assert not load_test.step_ok(run(dropped=1), "lmd")[0]
+    assert not load_test.step_ok(run(alive=False), "lmd")[0]
+    ok, why = load_test.step_ok(run(achieved=15.0), "lmd")
+    assert not ok and "publisher" in why
+
+
+def test_unknown_node_refused(tmp_path):
+    with pytest.raises(ValueError, match="unknown node"):
+        load_test.LoadTest(["lmd", "nope"], tmp_path)
+
+
+def test_e2e_experiment_short(tmp_path):
+    """bench_e2e's experiment, tiny: mimo_node alone, 3 s together-run, two 2-s rate steps.
+    The node answers over DDS, the figures and the report are there, it exits cleanly."""
+    spec = importlib.util.spec_from_file_location("bench_e2e", ROOT / "bench" / "bench_e2e.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    figs, report = bench.experiment(names=("mimo",), duration=3.0, warmup=0.0, rates=(10, 20),
+                                    window=2.0, out_dir=tmp_path, n_points=5000)
+    assert set(figs) == {f"e2e.mimo.{k}" for k in ("latency_ms_p50", "latency_ms_p99",
+                                                   "dropped", "max_rate_hz")}
+    e = report["together"]["nodes"]["mimo"]
+    assert e["published"] == 30 and 0 < e["received"] <= 30
+    assert e["dropped"] == 30 - e["received"] == figs["e2e.mimo.dropped"]
+    assert e["unexpected_outputs"] == 0 and e["duplicates"] == 0
+    assert e["latency_ms_p50"] > 0 and e["memory"]["samples"] >= 2
+    assert report["together"]["exit_codes"] == {"mimo": 0}
+    steps = report["max_rate"]["mimo"]["steps"]
+    assert 1 <= len(steps) <= 2 and steps[0]["rate_hz"] == 10
+    assert figs["e2e.mimo.max_rate_hz"] in (0.0, 10.0, 20.0)
+    assert report["max_rate"]["mimo"]["exit_code"] == 0
+    saved = json.loads((tmp_path / "report.json").read_text())
+    assert saved["figures"] == figs
+    assert (tmp_path / "all_mimo_node.log").exists()
