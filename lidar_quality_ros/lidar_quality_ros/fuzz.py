@@ -326,10 +326,13 @@ class Fuzzer:
     seeded order, so categories get near-equal shares; ``huge_clouds`` 2-million-point
     clouds and ``box_floods`` arrays of thousands of boxes are placed at seeded positions
     (default: 3 and one per 500 cases). Frame stamps advance by ``period_ns`` from
-    ``start_ns``; ``time_backwards`` cases move that clock back.
+    ``start_ns`` (default 10^6 s: room for the hour-long jumps back); ``time_backwards``
+    cases move that clock back by the jump plus a sub-period offset, so that stamps seldom
+    repeat.
     """
 
-    def __init__(self, template: FrameTemplate, seed: int = 0, *, start_ns: int = 1000 * NS_PER_SEC,
+    def __init__(self, template: FrameTemplate, seed: int = 0, *,
+                 start_ns: int = 1_000_000 * NS_PER_SEC,
                  period_ns: int = NS_PER_SEC // 10, huge_clouds: int = 3,
                  box_floods: int | None = None):
         self.template = template
@@ -399,9 +402,13 @@ class Fuzzer:
     def make_case(self, index: int, category: str, topic: str) -> FuzzCase:
         rng = np.random.default_rng([self.seed, 2, index])
         if category == "time_backwards":  # behind the previous frame by the jump
+            # plus a sub-period offset: the frames after the jump do not repeat the stamps
+            # of earlier frames exactly (an output could not be told apart otherwise)
+            jitter = int(rng.integers(1, max(self.period_ns, 2)))
             jump = int(float(rng.choice([0.05, 0.3, 0.9, 2.0, 60.0, 3600.0])) * NS_PER_SEC)
-            self._clock_ns = max(self._clock_ns - jump, NS_PER_SEC)
-            if jump > _RESET_NS:
+            old = self._clock_ns
+            self._clock_ns = max(old - jump - jitter, NS_PER_SEC + jitter)
+            if old - self._clock_ns > _RESET_NS:  # the jump made, not the one drawn
                 self._recent_max_ns = self._clock_ns
         else:
             self._clock_ns += self.period_ns

@@ -1,6 +1,6 @@
 """lidar_quality_ros.fuzz: every category makes what it says, companions stay valid, the
 stream is seeded; plus the short in-suite runs of scripts/fuzz_nodes.py (a few hundred
-malformed messages per node) and scripts/soak.py (20 s of one node)."""
+malformed messages per node) and scripts/soak.py (15 s of the three nodes)."""
 import json
 import subprocess
 import sys
@@ -355,19 +355,23 @@ def test_fuzz_nodes_short(tmp_path):
 
 
 def test_soak_short(tmp_path):
-    """20 s of lmd_node at 10 Hz with 120k-point frames: the node process is sampled, its
-    outputs are the frames sent (no duplicates, no strangers), it exits cleanly."""
+    """15 s of the three nodes at once at 10 Hz with 120k-point frames: every node process
+    is sampled, its outputs are the frames sent (no duplicates, no strangers), it exits
+    cleanly. Drops and latency are not asserted (a loaded machine may drop a frame)."""
     out = tmp_path / "soak.json"
-    proc, text = _run(["scripts/soak.py", "--duration", "20", "--nodes", "lmd", "--frames", "1",
-                       "--out", str(out)], timeout=240)
+    proc, text = _run(["scripts/soak.py", "--duration", "15", "--nodes", "lmd,lms,mimo",
+                       "--frames", "1", "--out", str(out)], timeout=300)
     assert out.exists(), text[-3000:]
     r = json.loads(out.read_text())
-    e = r["nodes"]["lmd"]
-    assert e["exit_code"] == 0, text[-3000:]
-    assert e["published"] > 0 and 0 < e["received"] <= e["published"]
-    assert e["dropped"] == e["published"] - e["received"]
-    assert e["unexpected_outputs"] == 0 and e["duplicates"] == 0
-    assert e["diag_frames_out"] >= e["received"]
-    m = e["memory"]
-    assert m["samples"] >= 15 and m["rss_warm_mb"] > 10 and np.isfinite(m["growth_pct"])
+    assert set(r["nodes"]) == {"lmd", "lms", "mimo"}
+    for name, e in r["nodes"].items():
+        assert e["exit_code"] == 0, (name, text[-3000:])
+        assert e["published"] == 150 and 0 < e["received"] <= e["published"], name
+        assert e["dropped"] == e["published"] - e["received"]
+        assert e["unexpected_outputs"] == 0 and e["duplicates"] == 0, name
+        assert e["diag_frames_out"] >= e["received"], name
+        m = e["memory"]
+        assert m["samples"] >= 10 and m["rss_warm_mb"] > 10 and np.isfinite(m["growth_pct"])
+        assert e["latency_ms_p50"] > 0 and e["cpu_pct"] > 0
+    assert r["achieved_rate_hz"] > 0 and r["frame_bytes"]["lms"] > r["frame_bytes"]["mimo"]
     assert ("PASS" in proc.stdout) == r["passed"]
