@@ -1,0 +1,563 @@
+"""``process_bag``: the three quality nodes over recorded perception bags, offline (no DDS).
+
+    process_bag --bag IN [--bag IN2 ...] --out OUT [--nodes lmd,lms,mimo]
+                [--param lmd.proposal_mode=exact ...] [--overwrite] [--no-progress]
+
+IN is a bag or a folder of bags (``perception_bag.resolve_bags``). A single bag gives the
+output bag OUT; several (or a folder) give OUT/<input name> each. The output bag (MCAP) holds
+every input message unchanged (topic, type, log time, recorded QoS) plus what the nodes
+publish for each frame, at the log time of the frame's cloud: ``/lmd/output/{detections,
+quality}``, ``/lms/output/{points,segments}``, ``/mimo/output/{detections,uncertainty}``.
+
+Settings are the nodes': the installed ``config/<node>_node.yaml`` with ``--param
+node.name=value`` overrides (YAML values), mapped to the pipelines' settings and models
+as the nodes map them; the frame work is the nodes' processors (``LmdProcessor``,
+``LmsProcessor``, ``mimo_ros.pipeline.process_frame``), detection arrays decoded from
+their bytes (``detection_cdr``) as the nodes do. Inputs are grouped by header stamp; a
+frame is processed once it has all input topics of the bag, or when 16 newer stamps have
+come. A frame a node cannot process (missing input, undecodable or malformed message,
+an exception) is dropped for that node and counted by reason, never the run; exit codes:
+0 done, 2 bad arguments, parameters or models (nothing written).
+"""
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import shutil
+import struct
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable
+
+from lidar_quality_core.time_sync import stamp_to_ns
+from lidar_quality_ros.perception_bag import (DEFAULT_TOPICS, HEAD_TOPIC, HEAD_VARIANCE_TOPIC,
+                                              resolve_bags)
+
+NODES = {"lmd": "lmd_ros", "lms": "lms_ros", "mimo": "mimo_ros"}
+DET, QUAL = "vision_msgs/msg/Detection3DArray", "lidar_quality_msgs/msg/"
+OUTPUTS = {"lmd": (("/lmd/output/detections", DET),
+                   ("/lmd/output/quality", QUAL + "DetectionQualityArray")),
+           "lms": (("/lms/output/points", "sensor_msgs/msg/PointCloud2"),
+                   ("/lms/output/segments", QUAL + "SegmentQualityArray")),
+           "mimo": (("/mimo/output/detections", DET),
+                    ("/mimo/output/uncertainty", QUAL + "ClusterUncertaintyArray"))}
+WINDOW = 16        # newer stamps after which an incomplete frame is processed as it is
+MAX_WARNINGS = 3   # per node and reason; the summary counts them all
+
+
+class UsageError(ValueError):
+    """A bad argument, parameter or model: nothing is processed."""
+
+
+class Drop(Exception):
+    """A frame a node does not process, with the reason counted in the summary."""
+
+    def __init__(self, reason: str, text: str = ""):
+        super().__init__(text or reason)
+        self.reason = reason
+
+
+# ----------------------------------------------------------------------- parameters
+def node_parameters(node: str, overrides: dict | None = None) -> dict:
+    """``ros__parameters`` of the node's installed config YAML with ``overrides`` applied
+    (unknown names and values of another type than the YAML's raise ``UsageError``)."""
+    import yaml
+    from ament_index_python.packages import get_package_share_directory
+
+    cfg = Path(get_package_share_directory(NODES[node])) / "config" / f"{node}_node.yaml"
+    params = dict(yaml.safe_load(cfg.read_text())["/**"]["ros__parameters"])
+    for name, value in (overrides or {}).items():
+        if name not in params:
+            raise UsageError(f"unknown parameter {node}.{name} (known: {', '.join(params)})")
+        default = params[name]
+        if isinstance(default, float) and type(value) is int:
+            value = float(value)
+        elif isinstance(default, str) and not isinstance(value, str) and value is not None:
+            value = str(value)      # e.g. ring_field=on: YAML's bool, meant as a name
+        if type(value) is not type(default):
+            raise UsageError(f"parameter {node}.{name} = {value!r}: expected a "
+                             f"{type(default).__name__} like {default!r}")
+        params[name] = value
+    return params
+
+
+def _settings(cls, params: dict, **extra):
+    """``cls`` (a settings dataclass) from the parameters named like its fields, validated."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    kw = {k: tuple(v) if isinstance(v, list) else v for k, v in params.items() if k in names}
+    settings = cls(**{**kw, **extra})
+    settings.validate()
+    return settings
+
+
+def mimo_settings(p: dict):
+    """``MimoSettings`` of mimo_node's parameters (``MimoNode._declare_settings``; the node
+    could share this function)."""
+    from mimo_ros.merging import MergeConfig
+    from mimo_ros.pipeline import MimoSettings
+
+    merge = MergeConfig(eps=p["eps"], voting=p["voting"],
+                        min_cluster_size=p["min_cluster_size"] or None,
+                        class_aware=p["class_aware"], score_type="probabilities",
+                        background_index=0, temperature=p["temperature"])
+    return _settings(MimoSettings, p, merge=merge)
+
+
+def _models(node: str, params: dict, defaults, feature_names):
+    from lidar_quality_core.meta_model import MetaModels
+
+    paths = [params.get(k) or str(d) for k, d in zip(("classifier_path", "regressor_path"),
+                                                     defaults)]
+    try:
+        return MetaModels(*paths, feature_names)
+    except Exception as exc:  # noqa: BLE001 - any load failure refuses the run
+        raise UsageError(f"{node}: cannot load the meta models: {exc}") from exc
+
+
+# ----------------------------------------------------------------------- node runners
+@dataclass
+class Runner:
+    """One node: its input topics (key -> topic), which of them it needs, and ``run``
+    (``get(key)`` -> decoded message or None) -> ``(outputs, counts, issues)``."""
+
+    name: str
+    topics: dict
+    required: tuple
+    run: Callable
+
+
+def _lmd(p: dict) -> Runner:
+    from lmd_ros.pipeline import LmdProcessor, LmdSettings, default_model_paths
+
+    s = _settings(LmdSettings, p)
+    proc = LmdProcessor(s, _models("lmd", p, default_model_paths(s.proposal_mode),
+                                   s.feature_names()), min_confidence=p["min_confidence"])
+    keys = ["points"] + (["detections"] if s.proposal_mode != "exact" else []) + (
+        ["proposals"] if s.proposal_mode != "none" else [])
+
+    def run(get):
+        out = proc.process(get("points"), get("detections"), get("proposals"))
+        return ((out.detections, out.quality),
+                {"detections_in": len(out.kept), "detections_out": int(out.kept.sum()),
+                 "detections_invalid": int((~out.frame.valid).sum())}, out.issues)
+
+    return Runner("lmd", {k: DEFAULT_TOPICS[k] for k in keys}, tuple(keys), run)
+
+
+def _lms(p: dict) -> Runner:
+    from lms_ros.pipeline import LmsProcessor, LmsSettings, default_model_paths
+
+    s = _settings(LmsSettings, p)
+    proc = LmsProcessor(s, _models("lms", p, default_model_paths(), s.metric_names()))
+    # the segmentation cloud carries points and probabilities; separately: /lidar/points
+    keys = ("points", "segmentation") if p["separate_probabilities"] else ("segmentation",)
+
+    def run(get):
+        pts = get(keys[0])
+        out = proc.process(pts, get("segmentation") if len(keys) == 2 else None)
+        res = out.result
+        return ((out.points, out.segments),
+                {"points_in": pts.width * pts.height,
+                 "points_out": out.points.width * out.points.height,
+                 "segments": res.n_segments, "segments_scored": len(res.kept_ids)}, out.issues)
+
+    return Runner("lms", {k: DEFAULT_TOPICS[k] for k in keys}, keys, run)
+
+
+def _mimo(p: dict) -> Runner:
+    from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
+    from mimo_ros.pipeline import default_model_paths, process_frame
+
+    s = mimo_settings(p)
+    models = _models("mimo", p, default_model_paths(s.use_points), s.feature_names())
+    if p["output_scores"] not in ("confidence", "merged"):
+        raise UsageError(f"mimo.output_scores must be confidence or merged, "
+                         f"got {p['output_scores']!r}")
+    K = s.num_heads
+    topics = {f"head_{k}": HEAD_TOPIC.format(k=k) for k in range(K)}
+    if p["use_variances"]:
+        topics.update({f"var_{k}": HEAD_VARIANCE_TOPIC.format(k=k) for k in range(K)})
+    if s.use_points:
+        topics["points"] = DEFAULT_TOPICS["points"]
+
+    def run(get):
+        issues = {}
+
+        def optional(key):  # as the node: a bad message is left out, the rest merged
+            try:
+                return get(key)
+            except Drop as exc:
+                issues["undecodable"] = str(exc)
+                return None
+
+        heads = [optional(f"head_{k}") for k in range(K)]
+        present = [h for h in heads if h is not None]
+        if not present:
+            raise Drop("undecodable_input" if issues else "no_head", issues.get(
+                "undecodable", "no head message in this frame"))
+        variances = ([optional(f"var_{k}") for k in range(K)] if p["use_variances"]
+                     else None)
+        cloud = optional("points") if s.use_points else None
+        if cloud is not None:
+            try:   # as the node: a bad cloud costs the point features, not the frame
+                cloud = xyz_intensity(cloud)
+            except CloudFormatError as exc:
+                cloud = None
+                issues["cloud"] = f"malformed input/points, point features NaN: {exc}"
+        out = process_frame(present[0].header, heads, variances, s, models, cloud_msg=cloud,
+                            scores=p["output_scores"], serialized=True)
+        if out.frame.issues:
+            issues["heads"] = "; ".join(out.frame.issues)
+        return ((out.detections, out.uncertainty),
+                {"boxes_in": sum(len(h) for h in present), "detections_out": len(out.frame),
+                 "partial_frames": int(len(present) < K)}, issues)
+
+    return Runner("mimo", topics, (), run)
+
+
+def build_runners(nodes=tuple(NODES), params: dict | None = None) -> list[Runner]:
+    """Runners of ``nodes`` with their settings and models; ``params``: ``{"lmd.name":
+    value}`` or ``{"lmd": {"name": value}}``. Raises ``UsageError`` for anything bad."""
+    unknown = [n for n in nodes if n not in NODES]
+    if unknown or not nodes:
+        raise UsageError(f"unknown node(s) {unknown or '(none given)'}: choose from "
+                         f"{', '.join(NODES)}")
+    per_node: dict = {n: {} for n in NODES}
+    for key, value in (params or {}).items():
+        node, _, name = key.partition(".")
+        if node not in NODES or not (name or isinstance(value, dict)):
+            raise UsageError(f"parameter {key!r}: expected <node>.<name> with node one of "
+                             f"{', '.join(NODES)}")
+        per_node[node].update(value if not name else {name: value})
+    for node, over in per_node.items():
+        if over and node not in nodes:
+            raise UsageError(f"parameters given for {node}, which is not in --nodes")
+    make = {"lmd": _lmd, "lms": _lms, "mimo": _mimo}
+    runners = []
+    for n in nodes:
+        try:
+            runners.append(make[n](node_parameters(n, per_node[n])))
+        except UsageError:
+            raise
+        except (ValueError, TypeError) as exc:  # settings' validation, MergeConfig
+            raise UsageError(f"invalid {n} parameter: {exc}") from exc
+    return runners
+
+
+# ----------------------------------------------------------------------- one bag
+_STAMP = struct.Struct("<iI")
+
+
+def _stamp_ns(raw: bytes) -> int:
+    """Header stamp of serialized little-endian CDR bytes of a message with a header."""
+    if len(raw) < 12 or raw[:2] != b"\x00\x01":
+        raise ValueError("not little-endian CDR of a message with a header")
+    return stamp_to_ns(*_STAMP.unpack_from(raw, 4))
+
+
+@dataclass
+class _Frame:
+    stamp_ns: int
+    msgs: dict = field(default_factory=dict)   # topic -> BagMessage
+    decoded: dict = field(default_factory=dict)
+
+    def log_ns(self) -> int:
+        cloud = self.msgs.get(DEFAULT_TOPICS["points"])
+        return cloud.stamp_ns if cloud else min(m.stamp_ns for m in self.msgs.values())
+
+    def get(self, topic: str):
+        """The decoded message (``None`` where absent); ``Drop`` when it cannot be."""
+        if topic not in self.decoded:
+            m = self.msgs.get(topic)
+            try:
+                if m is None:
+                    value = None
+                elif m.msgtype == DET:
+                    from lidar_quality_core.detection_cdr import decode_detection_array
+                    value = decode_detection_array(m.raw)
+                else:
+                    value = m.decode()
+            except Exception as exc:  # noqa: BLE001 - rclpy raises RuntimeError subclasses
+                value = Drop("undecodable_input", f"cannot decode {topic}: {exc}")
+            self.decoded[topic] = value
+        value = self.decoded[topic]
+        if isinstance(value, Drop):
+            raise value
+        return value
+
+
+@dataclass
+class NodeStats:
+    frames_in: int = 0
+    frames_out: int = 0
+    dropped: Counter = field(default_factory=Counter)
+    counts: Counter = field(default_factory=Counter)
+    issues: Counter = field(default_factory=Counter)   # frames with an input problem, by key
+    wall_s: float = 0.0
+
+    def summary(self) -> dict:
+        return {"frames_in": self.frames_in, "frames_out": self.frames_out,
+                "frames_dropped": sum(self.dropped.values()), "dropped": dict(self.dropped),
+                "counts": dict(self.counts), "issues": dict(self.issues),
+                "wall_s": round(self.wall_s, 3),
+                "frames_per_s": round(self.frames_in / self.wall_s, 2) if self.wall_s else None}
+
+
+class _Warnings:
+    """stderr warnings, at most ``MAX_WARNINGS`` per node and reason."""
+
+    def __init__(self, bag: str, progress: bool):
+        self.bag, self.seen, self.nl = bag, Counter(), "\n" if progress else ""
+
+    def __call__(self, node: str, reason: str, text: str) -> None:
+        self.seen[node, reason] += 1
+        n = self.seen[node, reason]
+        if n <= MAX_WARNINGS:
+            more = f" (further '{reason}' warnings not shown)" if n == MAX_WARNINGS else ""
+            sys.stderr.write(f"{self.nl}{self.bag}: {node}: {text}{more}\n")
+
+
+def _process_frame(frame: _Frame, runners, stats, warn, write) -> None:
+    log_ns = frame.log_ns()
+    for r in runners:
+        if not any(t in frame.msgs for t in r.topics.values()):
+            continue           # not this node's frame
+        st = stats[r.name]
+        st.frames_in += 1
+        t0 = time.perf_counter()
+        try:
+            missing = [r.topics[k] for k in r.required if r.topics[k] not in frame.msgs]
+            if missing:
+                raise Drop("missing_input", f"no {', '.join(missing)} at stamp {frame.stamp_ns}")
+            outputs, counts, issues = r.run(lambda key: frame.get(r.topics[key])
+                                            if key in r.topics else None)
+        except Drop as exc:
+            st.dropped[exc.reason] += 1
+            warn(r.name, exc.reason, f"frame at stamp {frame.stamp_ns} dropped: {exc}")
+            continue
+        except Exception as exc:  # noqa: BLE001 - CloudFormatError, ValueError, bugs
+            from lidar_quality_core.pointcloud import CloudFormatError
+            reason = "malformed_cloud" if isinstance(exc, CloudFormatError) else "processing_error"
+            st.dropped[reason] += 1
+            warn(r.name, reason, f"frame at stamp {frame.stamp_ns} dropped: "
+                                 f"{type(exc).__name__}: {exc}")
+            continue
+        finally:
+            st.wall_s += time.perf_counter() - t0
+        st.frames_out += 1
+        st.counts.update(counts)
+        for key, text in issues.items():
+            st.issues[key] += 1
+            warn(r.name, key, f"stamp {frame.stamp_ns}: {text}")
+        for (topic, msgtype), msg in zip(OUTPUTS[r.name], outputs):
+            write(topic, msgtype, log_ns, msg)
+
+
+def _check_out(out: Path, overwrite: bool) -> None:
+    if out.exists() or out.is_symlink():
+        if not overwrite:
+            raise UsageError(f"{out} exists: pass --overwrite or choose another --out")
+        if not ((out / "metadata.yaml").exists() or (out.is_dir() and not any(out.iterdir()))):
+            raise UsageError(f"{out} exists and is not a bag: not overwriting it")
+
+
+def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
+    from lidar_quality_core.progress import Progress
+    from lidar_quality_ros.bag_io import BagWriter, bag_info, read_bag
+    from lidar_quality_ros.qos import output_qos
+
+    t_start = time.perf_counter()
+    info = bag_info(in_bag)
+    wanted = {t for r in runners for t in r.topics.values() if t in info.topics}
+    warn = _Warnings(in_bag.name, progress)
+    for r in runners:
+        absent = [t for t in r.topics.values() if t not in info.topics]
+        if absent:
+            warn(r.name, "absent_topics", f"topics not in the bag: {', '.join(absent)}")
+    stats = {r.name: NodeStats() for r in runners}
+    bar = Progress(f"{in_bag.name}", max((info.topics[t].count for t in wanted), default=0),
+                   enabled=progress)
+    if out_bag.exists():
+        shutil.rmtree(out_bag)
+    out_bag.parent.mkdir(parents=True, exist_ok=True)
+    pending: dict[int, _Frame] = {}
+    backlog: list = []                 # input messages read, not yet written (log order)
+    last_done, late, copied, n_frames = None, Counter(), 0, 0
+    with BagWriter(out_bag) as w:
+        def write(topic, msgtype, log_ns, msg):
+            qos = [output_qos(5 if topic == "/lms/output/points" else 10)]
+            w.write(topic, msgtype, log_ns, msg, qos=qos)
+
+        def drain(upto: float) -> None:   # copy input messages logged up to ``upto``
+            nonlocal copied
+            k = 0
+            while k < len(backlog) and backlog[k].stamp_ns <= upto:
+                m = backlog[k]
+                w.write(m.topic, m.msgtype, m.stamp_ns, m.raw, qos=info.topics[m.topic].qos)
+                k += 1
+            copied += k
+            del backlog[:k]
+
+        def flush(keep: int) -> None:  # oldest frames: complete ones, or beyond ``keep``
+            nonlocal last_done, n_frames
+            while pending:
+                oldest = min(pending)
+                f = pending[oldest]
+                if len(pending) <= keep and not wanted <= f.msgs.keys():
+                    break
+                del pending[oldest]
+                drain(f.log_ns())
+                _process_frame(f, runners, stats, warn, write)
+                last_done, n_frames = oldest, n_frames + 1
+                bar.update()
+
+        for m in read_bag(in_bag):
+            backlog.append(m)
+            if m.topic in wanted:
+                try:
+                    stamp = _stamp_ns(m.raw)
+                except (ValueError, struct.error) as exc:
+                    stamp = exc
+                if isinstance(stamp, Exception) or (last_done is not None and stamp <= last_done):
+                    why = "unreadable_stamp" if isinstance(stamp, Exception) else "late"
+                    late[why] += 1
+                    for r in runners:
+                        if m.topic in r.topics.values():
+                            warn(r.name, why, f"{m.topic} message at log time {m.stamp_ns} "
+                                              f"not processed ({why}): copied only")
+                else:
+                    pending.setdefault(stamp, _Frame(stamp)).msgs[m.topic] = m
+                    flush(WINDOW)
+            if not pending:
+                drain(float("inf"))
+        flush(0)
+        drain(float("inf"))
+    bar.close()
+    return {"in": str(in_bag), "out": str(out_bag), "frames": n_frames, "messages_copied": copied,
+            "messages_not_processed": dict(late),
+            "wall_s": round(time.perf_counter() - t_start, 3),
+            "nodes": {name: st.summary() for name, st in stats.items()}}
+
+
+def process_bag(in_bag, out_bag, *, nodes=tuple(NODES), params: dict | None = None,
+                progress: bool = True, overwrite: bool = False) -> dict:
+    """Process one bag into ``out_bag``; returns the summary (JSON-able). Bad arguments
+    raise ``UsageError`` before anything is written."""
+    in_bag, out_bag = Path(in_bag), Path(out_bag)
+    nodes = nodes.split(",") if isinstance(nodes, str) else nodes
+    if not (in_bag / "metadata.yaml").exists():
+        raise UsageError(f"{in_bag}: not a rosbag2 directory")
+    _plan([in_bag], out_bag)
+    _check_out(out_bag, overwrite)
+    return _run(in_bag, out_bag, build_runners(tuple(nodes), params), progress=progress)
+
+
+# ----------------------------------------------------------------------- command line
+ITEMS = {"lmd": "{detections_in} det -> {detections_out}",
+         "lms": "{points_in} pts -> {points_out}, {segments} seg",
+         "mimo": "{boxes_in} boxes -> {detections_out} merged"}
+
+
+def format_summary(summaries: list[dict]) -> str:
+    """Per node, over all bags: frames in / out / dropped (reasons), items in / out, time."""
+    total: dict[str, NodeStats] = {}
+    for s in summaries:
+        for name, n in s["nodes"].items():
+            t = total.setdefault(name, NodeStats())
+            t.frames_in += n["frames_in"]
+            t.frames_out += n["frames_out"]
+            t.dropped.update(n["dropped"])
+            t.counts.update(n["counts"])
+            t.wall_s += n["wall_s"]
+    lines = [f"{'node':<6}{'in':>6}{'out':>6}{'dropped':>9}  {'items in -> out':<34}"
+             f"{'wall s':>8}{'frames/s':>10}  drop reasons"]
+    for name, t in total.items():
+        fps = f"{t.frames_in / t.wall_s:.1f}" if t.wall_s else "-"
+        reasons = ", ".join(f"{k} {v}" for k, v in sorted(t.dropped.items())) or "-"
+        lines.append(f"{name:<6}{t.frames_in:>6}{t.frames_out:>6}{sum(t.dropped.values()):>9}"
+                     f"  {ITEMS[name].format_map(t.counts):<34}{t.wall_s:>8.2f}{fps:>10}"
+                     f"  {reasons}")
+    wall = sum(s["wall_s"] for s in summaries)
+    frames = sum(s["frames"] for s in summaries)
+    lines.append(f"{len(summaries)} bag(s), {frames} frames, {wall:.2f} s wall in all "
+                 f"({frames / max(wall, 1e-9):.1f} frames/s)")
+    return "\n".join(lines)
+
+
+def _parse_params(items) -> dict:
+    import yaml
+
+    out = {}
+    for item in items:
+        key, eq, text = item.partition("=")
+        if not eq:
+            raise UsageError(f"--param {item!r}: expected <node>.<name>=<value>")
+        try:
+            out[key.strip()] = yaml.safe_load(text)
+        except yaml.YAMLError as exc:
+            raise UsageError(f"--param {item!r}: not a YAML value: {exc}") from None
+    return out
+
+
+def _plan(bags, out: Path) -> list[tuple[Path, Path]]:
+    """(input bag, output bag) pairs: OUT itself for one bag given as a bag, else OUT/<name>."""
+    for b in map(Path, bags):
+        if not b.exists():
+            raise UsageError(f"--bag {b}: no such file or directory")
+    try:
+        inputs = resolve_bags(bags)
+    except FileNotFoundError as exc:
+        raise UsageError(str(exc)) from None
+    single = len(bags) == 1 and inputs == [Path(bags[0])]
+    pairs = [(b, out if single else out / b.name) for b in inputs]
+    names = Counter(o for _, o in pairs)
+    dup = [str(o) for o, n in names.items() if n > 1]
+    if dup:
+        raise UsageError(f"several input bags would write {', '.join(dup)}: give bags with "
+                         "distinct names")
+    for b, o in pairs:
+        ri, ro = b.resolve(), o.resolve()
+        if ri == ro or ri in ro.parents or ro in ri.parents:
+            raise UsageError(f"output {o} overlaps input {b}")
+    return pairs
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(prog="process_bag", description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--bag", action="append", required=True, metavar="IN",
+                    help="input bag, or a folder of bags (repeatable)")
+    ap.add_argument("--out", required=True, type=Path, help="output bag (one input bag) or "
+                    "folder of output bags")
+    ap.add_argument("--nodes", default=",".join(NODES), help="comma-separated subset of "
+                    f"{','.join(NODES)} (default: all)")
+    ap.add_argument("--param", action="append", default=[], metavar="NODE.NAME=VALUE",
+                    help="override a node parameter of its config YAML (repeatable)")
+    ap.add_argument("--overwrite", action="store_true", help="replace existing output bags")
+    ap.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
+    args = ap.parse_args(argv)
+    try:
+        nodes = tuple(n.strip() for n in args.nodes.split(",") if n.strip())
+        pairs = _plan(args.bag, args.out)
+        if len(pairs) == 1 and pairs[0][1] == args.out:
+            _check_out(args.out, args.overwrite)
+        else:
+            if args.out.exists() and not args.out.is_dir():
+                raise UsageError(f"{args.out} is a file: --out must be a folder for several bags")
+            if args.out.exists() and not args.overwrite:
+                raise UsageError(f"{args.out} exists: pass --overwrite or choose another --out")
+            for _, o in pairs:
+                _check_out(o, True)
+        runners = build_runners(nodes, _parse_params(args.param))
+    except UsageError as exc:
+        ap.error(str(exc))
+    summaries = [_run(b, o, runners, progress=not args.no_progress) for b, o in pairs]
+    print(format_summary(summaries))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,199 @@
+"""process_bag: the annotated bag (inputs copied, one output per node and frame, LMD ids /
+order / values as LmdProcessor gives them), corrupted frames dropped and counted, CLI
+errors, parameter overrides, the installed executable. Real bags: a 3-frame simulated
+perception bag run through the reference perception (``perception_bags``)."""
+import json
+import subprocess
+
+import numpy as np
+import pytest
+from lidar_quality_core.meta_model import MetaModels
+from lidar_quality_ros.bag_io import BagWriter, bag_info, read_bag
+from lidar_quality_ros.perception_bag import perception_frames
+from lidar_quality_ros.qos import SENSOR_QOS
+from lidar_quality_tools.process import OUTPUTS, main, process_bag
+from lmd_ros.pipeline import LmdProcessor, LmdSettings, default_model_paths
+from node_shell_checks import executable
+from perception_bags import simulated_perception_bags
+from rclpy.serialization import deserialize_message, serialize_message
+from reference_perception.cli import Perception
+from sensor_msgs.msg import PointCloud2
+
+N_FRAMES = 3
+OUT_TOPICS = [t for outs in OUTPUTS.values() for t, _ in outs]
+
+
+@pytest.fixture(scope="module")
+def bags(tmp_path_factory):
+    return simulated_perception_bags(tmp_path_factory.mktemp("process"), Perception(heads=2),
+                                     n_sequences=1, n_frames=N_FRAMES, seed=3, columns=512)
+
+
+@pytest.fixture(scope="module")
+def bag(bags):
+    return bags / "seq_00"
+
+
+def messages(path, topics=None):
+    return [(m.topic, m.msgtype, m.stamp_ns, m.raw) for m in read_bag(path, topics)]
+
+
+def decoded(path, topic):
+    return [m.decode() for m in read_bag(path, {topic})]
+
+
+def ids(det_array):
+    return [d.id for d in det_array.detections]
+
+
+def test_annotated_bag(bag, tmp_path):
+    out = tmp_path / "out"
+    summary = process_bag(bag, out, progress=False)
+    assert json.loads(json.dumps(summary)) == summary
+    for node in ("lmd", "lms", "mimo"):
+        s = summary["nodes"][node]
+        assert (s["frames_in"], s["frames_out"], s["frames_dropped"]) == (N_FRAMES,) * 2 + (0,)
+        assert s["wall_s"] > 0 and s["frames_per_s"] > 0
+    inputs = messages(bag)
+    assert messages(out, {t for t, *_ in inputs}) == inputs      # every input, unchanged
+    info = bag_info(out)
+    assert {t: info.topics[t].count for t in OUT_TOPICS} == dict.fromkeys(OUT_TOPICS, N_FRAMES)
+    clouds = list(read_bag(bag, {"/lidar/points"}))
+    for topic in OUT_TOPICS:    # log time and header stamp of the frame's cloud
+        outs = list(read_bag(out, {topic}))
+        assert [m.stamp_ns for m in outs] == [c.stamp_ns for c in clouds]
+        assert [m.decode().header for m in outs] == [c.decode().header for c in clouds]
+    times = [m.stamp_ns for m in read_bag(out)]
+    assert times == sorted(times)
+
+    settings = LmdSettings()    # the installed lmd_node.yaml's settings
+    proc = LmdProcessor(settings, MetaModels(*default_model_paths("threshold"),
+                                             settings.feature_names()))
+    frames = list(perception_frames(bag, want=("points", "detections", "proposals",
+                                               "segmentation"), heads=2))
+    lmd_dets = decoded(out, "/lmd/output/detections")
+    lmd_quality = decoded(out, "/lmd/output/quality")
+    lms_points = decoded(out, "/lms/output/points")
+    mimo_dets = decoded(out, "/mimo/output/detections")
+    assert summary["nodes"]["lmd"]["counts"]["detections_in"] == sum(
+        len(f.detections.detections) for f in frames)
+    for f, dets, quality, points, merged in zip(frames, lmd_dets, lmd_quality, lms_points,
+                                                mimo_dets):
+        in_ids = ids(f.detections)
+        assert len(in_ids) > 0
+        assert ids(dets) == in_ids
+        assert [q.detection_id for q in quality.detections] == in_ids
+        assert [q.detection_index for q in quality.detections] == list(range(len(in_ids)))
+        direct = proc.process(f.points, f.detections, f.proposals)
+        np.testing.assert_allclose([q.confidence for q in quality.detections],
+                                   direct.confidence, rtol=1e-9)
+        np.testing.assert_allclose([q.predicted_iou for q in quality.detections],
+                                   direct.predicted_iou, rtol=1e-9)
+        assert points.width * points.height == f.segmentation.width * f.segmentation.height
+        assert "confidence" in [pf.name for pf in points.fields]
+        assert 0 < len(merged.detections) <= sum(len(h.detections) for h in f.heads)
+
+
+def corrupted_copy(bag, dst):
+    """``bag`` with frame 0's proposals and head_0 truncated bytes, frame 1's cloud and
+    frame 2's segmentation clouds with a truncated data buffer; the cloud topic recorded
+    with sensor-data QoS."""
+    stamps = sorted({m.stamp_ns for m in read_bag(bag, {"/lidar/points"})})
+    with BagWriter(dst) as w:
+        for m in read_bag(bag):
+            raw = m.raw
+            frame = stamps.index(m.stamp_ns) if m.stamp_ns in stamps else -1
+            if (m.topic, frame) in (("/perception/proposals", 0), ("/perception/head_0", 0)):
+                raw = raw[:len(raw) // 2]
+            if (m.topic, frame) in (("/lidar/points", 1), ("/perception/segmentation", 2)):
+                msg = deserialize_message(raw, PointCloud2)
+                msg.data = bytes(msg.data)[:len(msg.data) - 7]
+                raw = serialize_message(msg)
+            w.write(m.topic, m.msgtype, m.stamp_ns, raw,
+                    qos=[SENSOR_QOS] if m.topic == "/lidar/points" else ())
+
+
+def test_bad_frames_are_dropped_and_counted(bag, tmp_path, capsys):
+    src, out = tmp_path / "bad", tmp_path / "out"
+    corrupted_copy(bag, src)
+    summary = process_bag(src, out, progress=False)
+    nodes = summary["nodes"]
+    assert nodes["lmd"]["frames_out"] == 1
+    assert nodes["lmd"]["dropped"] == {"undecodable_input": 1, "malformed_cloud": 1}
+    assert nodes["lms"]["frames_out"] == 2 and nodes["lms"]["dropped"] == {"malformed_cloud": 1}
+    # MIMO, as the node: an undecodable head is left out, the frame merged from the other
+    assert nodes["mimo"]["frames_out"] == 3 and nodes["mimo"]["issues"]["undecodable"] == 1
+    assert all(n["frames_in"] == N_FRAMES for n in nodes.values())
+    info = bag_info(out)
+    assert [info.topics[t].count for t in OUT_TOPICS] == [1, 1, 2, 2, 3, 3]
+    assert messages(out, set(bag_info(src).topics)) == messages(src)   # copied unchanged
+    assert info.topics["/lidar/points"].qos == [SENSOR_QOS]
+    # the processed LMD frame is frame 2, with every detection in order
+    frames = list(perception_frames(src, want=("detections",), require="detections"))
+    assert ids(decoded(out, "/lmd/output/detections")[0]) == ids(frames[2].detections)
+    err = capsys.readouterr().err
+    assert err.count("dropped") == 3 and "CloudFormatError" in err
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--bag", "{tmp}/nope"], "no such file"),
+    (["--nodes", "lmd,foo"], "unknown node"),
+    (["--param", "lmd.no_such=1"], "unknown parameter lmd.no_such"),
+    (["--param", "lmd.proposal_mode=bogus"], "proposal_mode"),
+    (["--param", "lmd.iou_threshold=high"], "expected a float"),
+    (["--param", "mimo.eps"], "expected <node>.<name>=<value>"),
+    (["--param", "lms.width=512", "--nodes", "lmd"], "not in --nodes"),
+    (["--out", "{bag}", "--overwrite"], "overlaps"),
+])
+def test_cli_argument_errors(bag, tmp_path, capsys, args, message):
+    argv = ["--bag", str(bag), "--out", str(tmp_path / "out"), "--no-progress"]
+    argv += [a.format(tmp=tmp_path, bag=bag) for a in args]
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
+def test_existing_output_needs_overwrite(bag, tmp_path, capsys):
+    out = tmp_path / "out"
+    argv = ["--bag", str(bag), "--out", str(out), "--nodes", "mimo", "--no-progress"]
+    assert main(argv) == 0
+    with pytest.raises(SystemExit) as e:
+        main(argv)
+    assert e.value.code == 2 and "--overwrite" in capsys.readouterr().err
+    assert main(argv + ["--overwrite"]) == 0
+    assert set(bag_info(out).topics) >= {"/mimo/output/detections"}
+    assert "/lmd/output/quality" not in bag_info(out).topics
+
+
+def test_param_override_and_folder_of_bags(bags, tmp_path, capsys):
+    """``--bag <folder>`` writes OUT/<bag name>; proposal_mode=none selects the none-mode
+    models and still scores every detection."""
+    out = tmp_path / "out"
+    assert main(["--bag", str(bags), "--out", str(out), "--nodes", "lmd", "--no-progress",
+                 "--param", "lmd.proposal_mode=none"]) == 0
+    assert "lmd" in capsys.readouterr().out
+    res = out / "seq_00"
+    none_models = MetaModels(*default_model_paths("none"),
+                             LmdSettings(proposal_mode="none").feature_names())
+    quality = decoded(res, "/lmd/output/quality")
+    assert len(quality) == N_FRAMES
+    assert {(q.confidence_model_id, q.iou_model_id) for q in quality} == {
+        (none_models.confidence_model_id, none_models.iou_model_id)}
+    inputs = decoded(bags / "seq_00", "/perception/detections")
+    assert [ids(d) for d in decoded(res, "/lmd/output/detections")] == [ids(d) for d in inputs]
+    assert all(np.isfinite(q.confidence) for a in quality for q in a.detections)
+
+
+def test_installed_executable(bag, tmp_path):
+    out = tmp_path / "out"
+    ok = subprocess.run([str(executable("lidar_quality_tools", "process_bag")), "--bag",
+                         str(bag), "--out", str(out), "--nodes", "lms,mimo", "--no-progress"],
+                        capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0, ok.stderr
+    assert "lms" in ok.stdout and "mimo" in ok.stdout and "frames/s" in ok.stdout
+    bad = subprocess.run([str(executable("lidar_quality_tools", "process_bag")), "--bag",
+                          str(bag), "--out", str(out)], capture_output=True, text=True,
+                         timeout=120)
+    assert bad.returncode == 2 and "exists" in bad.stderr
