@@ -37,8 +37,10 @@ test: build
 bench: build
 	bash scripts/with_env.sh python bench/run.py --out out/bench/results.json
 
-demo: build
-	bash scripts/with_env.sh python -m lidar_quality_ros.demo --out out/demo
+# The main job: the three nodes on a replayed simulated perception bag (generated once into
+# data/perception/demo), evaluated against the ground truth: out/demo/report.md.
+demo: build data/perception/demo/.done
+	bash scripts/with_env.sh python -m lidar_quality_tools.demo --bag data/perception/demo --out out/demo
 
 # Retrain the reference detector, multi-head detector and segmenter on the simulated
 # reference_train split and print their held-out quality (reference_test).

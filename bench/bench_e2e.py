@@ -40,6 +40,8 @@ RATE = 10.0
 RATES = (10, 15, 20, 30, 40, 60, 80, 100)
 WINDOW = 10.0
 OUT = ROOT / "out" / "bench" / "e2e"
+#: issue 8's goals: latency p99 [ms] per node, no dropped frame at 10 Hz with all three
+GOALS_P99_MS = {"lmd": 30.0, "lms": 80.0, "mimo": 10.0}
 
 
 def _say(s: str) -> None:
@@ -99,6 +101,11 @@ def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=R
             "lower_bound": bool(last.get("ok")) or "publisher" in str(last.get("why", "")),
         }
         figures[f"e2e.{n}.max_rate_hz"] = best
+    report["goals"] = {n: {"latency_ms_p99_goal": GOALS_P99_MS[n],
+                           "latency_met": (figures[f"e2e.{n}.latency_ms_p99"] or 1e9)
+                           <= GOALS_P99_MS[n],
+                           "no_drop": figures[f"e2e.{n}.dropped"] == 0}
+                       for n in names}
     report["load_average_end"] = os.getloadavg()
     report["elapsed_s"] = round(time.monotonic() - t_start, 1)
     report["figures"] = figures
@@ -130,6 +137,10 @@ def main(argv=None) -> int:
                               args.window, Path(args.out), args.points)
     for k, v in figs.items():
         print(f"{k:32s} {v}")
+    for n, g in report["goals"].items():
+        print(f"{n}: p99 <= {g['latency_ms_p99_goal']:g} ms "
+              f"{'met' if g['latency_met'] else 'NOT met'}; no drop at {args.rate:g} Hz with "
+              f"{', '.join(names)} at once: {'met' if g['no_drop'] else 'NOT met'}")
     together = report["together"]["nodes"]
     ok = all(e["alive"] for e in together.values()) and all(
         c == 0 for c in report["together"]["exit_codes"].values())

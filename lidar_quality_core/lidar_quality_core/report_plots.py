@@ -13,7 +13,7 @@ import numpy as np
 from .metrics import reliability_diagram
 
 __all__ = ["figure", "save", "reliability_png", "scatter_png", "curve_png", "histogram_png",
-           "markdown_table", "fmt"]
+           "draw_bev_box", "bev_boxes_png", "bev_values_png", "markdown_table", "fmt"]
 
 
 def figure(width: float = 5.0, height: float = 4.0):
@@ -112,6 +112,69 @@ def histogram_png(path, samples: Mapping[str, Sequence[float]], *, xlabel: str, 
     ax.set_ylabel("count")
     ax.set_title(title, fontsize=10)
     ax.legend(fontsize=8)
+    return save(fig, path)
+
+
+def draw_bev_box(ax, box, **kw) -> None:
+    """Outline of one (7,) box ``x, y, z, l, w, h, yaw`` in the x-y plane."""
+    from .box_geometry import bev_corners
+
+    c = bev_corners(np.asarray(box, np.float64).reshape(1, 7))[0]
+    c = np.vstack([c, c[:1]])
+    ax.plot(c[:, 0], c[:, 1], **kw)
+
+
+def _bev_axes(ax, xy, max_range: float) -> None:
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    near = np.abs(xy).max(axis=1) <= max_range if len(xy) else np.zeros(0, bool)
+    ax.scatter(xy[near, 0], xy[near, 1], s=0.2, color="0.6", linewidths=0)
+    ax.set_xlim(-max_range, max_range)
+    ax.set_ylim(-max_range, max_range)
+    ax.set_aspect("equal")
+    ax.set_xlabel("x [m]")
+    ax.set_ylabel("y [m]")
+
+
+def bev_boxes_png(path, xy, boxes, values, *, gt_boxes=(), title: str = "",
+                  label: str = "confidence", max_range: float = 50.0) -> Path:
+    """Bird's-eye view of one frame: the points (grey), ground-truth boxes (dashed black)
+    and boxes coloured by ``values`` in [0, 1] (e.g. the meta confidence)."""
+    import matplotlib
+    from matplotlib import cm, colors
+
+    fig = figure(6.4, 5.6)
+    ax = fig.add_subplot(1, 1, 1)
+    _bev_axes(ax, xy, max_range)
+    for b in np.asarray(gt_boxes, float).reshape(-1, 7):
+        draw_bev_box(ax, b, color="k", lw=0.8, ls="--")
+    cmap, norm = matplotlib.colormaps["RdYlGn"], colors.Normalize(0.0, 1.0)
+    for b, v in zip(np.asarray(boxes, float).reshape(-1, 7), np.asarray(values, float)):
+        draw_bev_box(ax, b, color=cmap(norm(v)) if np.isfinite(v) else "m", lw=1.4)
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=ax, label=label)
+    ax.set_title(title, fontsize=10)
+    return save(fig, path)
+
+
+def bev_values_png(path, xy, panels: Mapping[str, Sequence[float]], *, label: str = "",
+                   max_range: float = 50.0, title: str = "") -> Path:
+    """Bird's-eye view of one frame's points, one panel per named per-point value in
+    [0, 1] (NaN: grey), e.g. predicted against true segment IoU."""
+    import matplotlib
+    from matplotlib import cm, colors
+
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    fig = figure(5.6 * max(len(panels), 1), 5.4)
+    cmap, norm = matplotlib.colormaps["RdYlGn"], colors.Normalize(0.0, 1.0)
+    for k, (name, v) in enumerate(panels.items()):
+        ax = fig.add_subplot(1, len(panels), k + 1)
+        _bev_axes(ax, xy, max_range)
+        v = np.asarray(v, float).reshape(-1)
+        ok = np.isfinite(v) & (np.abs(xy).max(axis=1) <= max_range)
+        ax.scatter(xy[ok, 0], xy[ok, 1], c=v[ok], s=0.4, cmap=cmap, norm=norm, linewidths=0)
+        ax.set_title(name, fontsize=10)
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=fig.axes, label=label, shrink=0.8)
+    if title:
+        fig.suptitle(title, fontsize=10)
     return save(fig, path)
 
 

@@ -11,6 +11,7 @@ from collections import Counter, deque
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from rclpy.clock import Clock, ClockType
 
 from .qos import output_qos
 
@@ -35,7 +36,11 @@ class NodeDiagnostics:
         self._sources: list = []
         self.frames_out = 0
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", output_qos(10))
-        self._timer = node.create_timer(period_s, self.publish) if period_s > 0 else None
+        # Steady clock: a timer on the ROS clock under use_sim_time made rclpy's executor
+        # wake between /clock messages and cost a core (measured with bag_player --clock).
+        self._timer = (node.create_timer(period_s, self.publish,
+                                         clock=Clock(clock_type=ClockType.STEADY_TIME))
+                       if period_s > 0 else None)
 
     def input_received(self, topic: str) -> None:
         with self._lock:

@@ -78,8 +78,10 @@ def cpu_seconds(pid: int) -> float | None:
 
 def memory_growth(t: np.ndarray, kb: np.ndarray, warmup_s: float, window_s: float) -> dict:
     """RSS at the end of warm-up (median over ``window_s`` after ``warmup_s``), at the end
-    (median over the last ``window_s``), growth between them in %, and the slope of a
-    line fitted after warm-up [MB/min]."""
+    (median over the last ``window_s``), growth between them in %, the growth over the
+    second half of the time after warm-up (a leak grows in both halves; the allocator
+    settling into its high-water mark mostly in the first), and the slope of a line
+    fitted after warm-up [MB/min]."""
     t, kb = np.asarray(t, float), np.asarray(kb, float)
     after = t >= warmup_s
     if after.sum() < 2:
@@ -87,10 +89,14 @@ def memory_growth(t: np.ndarray, kb: np.ndarray, warmup_s: float, window_s: floa
     start = kb[after & (t < warmup_s + window_s)]
     end = kb[t > t[-1] - window_s]
     warm, last = float(np.median(start)), float(np.median(end))
+    mid_t = (max(warmup_s, float(t[0])) + float(t[-1])) / 2
+    mid = kb[np.abs(t - mid_t) <= window_s / 2]
+    mid_kb = float(np.median(mid)) if len(mid) else warm
     slope = np.polyfit(t[after] / 60.0, kb[after] / 1024.0, 1)[0] if after.sum() > 2 else 0.0
     return {"samples": int(len(t)), "rss_warm_mb": round(warm / 1024, 1),
             "rss_end_mb": round(last / 1024, 1), "rss_max_mb": round(float(kb.max()) / 1024, 1),
             "growth_pct": round((last - warm) / warm * 100.0, 2),
+            "growth_second_half_pct": round((last - mid_kb) / mid_kb * 100.0, 2),
             "slope_mb_per_min": round(float(slope), 3)}
 
 
@@ -151,6 +157,28 @@ def _message_class(type_name: str):
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
 
 
+def node_command(name: str, *, params: dict | None = None, remaps: dict | None = None,
+                 namespace: str | None = None) -> tuple[list[str], dict]:
+    """``(argv, parameters)`` of a node executable as a user starts it: ``<name>_node``
+    with its installed ``config/<name>_node.yaml``, in namespace ``/<name>`` (default),
+    then ``-p`` overrides and ``-r`` remaps; ``parameters`` as the node will read them."""
+    import yaml
+    from ament_index_python.packages import get_package_prefix, get_package_share_directory
+
+    package = NODES[name][0]
+    exe = Path(get_package_prefix(package)) / "lib" / package / f"{name}_node"
+    cfg = Path(get_package_share_directory(package)) / "config" / f"{name}_node.yaml"
+    values = dict(yaml.safe_load(cfg.read_text())["/**"]["ros__parameters"])
+    argv = [str(exe), "--ros-args", "--params-file", str(cfg),
+            "-r", f"__ns:={namespace or '/' + name}"]
+    for k, v in (params or {}).items():
+        argv += ["-p", f"{k}:={v}"]
+        values[k] = yaml.safe_load(str(v))  # as the node reads it
+    for old, new in (remaps or {}).items():
+        argv += ["-r", f"{old}:={new}"]
+    return argv, values
+
+
 # ----------------------------------------------------------------------------- the test
 @dataclass
 class _Node:
@@ -206,8 +234,6 @@ class LoadTest:
         self.close()
 
     def start(self) -> None:
-        import yaml
-        from ament_index_python.packages import get_package_prefix, get_package_share_directory
         from diagnostic_msgs.msg import DiagnosticArray
         from lidar_quality_ros.qos import output_qos
         from lidar_quality_ros.testing import RosHarness
@@ -220,13 +246,7 @@ class LoadTest:
         self.ros = ros = RosHarness()
         try:
             for name in self.names:
-                package = NODES[name][0]
-                exe = Path(get_package_prefix(package)) / "lib" / package / f"{name}_node"
-                cfg = Path(get_package_share_directory(package)) / "config" / f"{name}_node.yaml"
-                params = yaml.safe_load(cfg.read_text())["/**"]["ros__parameters"]
-                argv = [str(exe), "--ros-args", "--params-file", str(cfg), "-r", f"__ns:=/{name}"]
-                for k, v in self.extra_params.get(name, {}).items():
-                    argv += ["-p", f"{k}:={v}"]
+                argv, params = node_command(name, params=self.extra_params.get(name, {}))
                 log = self.out_dir / f"{self.log_prefix}{name}_node.log"
                 with open(log, "w") as fh:  # the child keeps its own descriptor
                     proc = ros.spawn(argv, stdout=fh, stderr=subprocess.STDOUT,
@@ -497,6 +517,7 @@ class LoadTest:
         """SIGINT to every node, their exit codes (``exit_codes``), the harness closed."""
         if self.ros is None:
             return self.exit_codes
+        gc.unfreeze()
         for node in self.nodes.values():
             if node.proc.poll() is None:
                 node.proc.send_signal(signal.SIGINT)

@@ -5,12 +5,13 @@ import signal
 import threading
 
 import rclpy
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
+                             SingleThreadedExecutor)
 from rclpy.signals import SignalHandlerOptions
 
 
-class _DrainingExecutor(MultiThreadedExecutor):
-    """A MultiThreadedExecutor that can stop spinning and drain before it shuts down.
+class _Stoppable:
+    """An executor that can stop spinning and drain before it shuts down.
 
     Jazzy's ``Executor.shutdown`` skips its wait for callbacks in flight (the condition is
     inverted) and destroys the wake-up guard condition under them; a callback finishing
@@ -31,11 +32,19 @@ class _DrainingExecutor(MultiThreadedExecutor):
         try:
             self._work_tracker.wait(timeout_sec)
             self._executor.shutdown(wait=True)  # handlers still queued run with the guard alive
-        except AttributeError:
+        except AttributeError:  # single-threaded: nothing runs once spin() has returned
             pass
 
 
-def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
+class _DrainingExecutor(_Stoppable, MultiThreadedExecutor):
+    pass
+
+
+class _StoppableExecutor(_Stoppable, SingleThreadedExecutor):
+    pass
+
+
+def run_node(node_factory, args=None, *, num_threads: int = 1) -> int:
     """Create the node, spin it until SIGINT / SIGTERM and return the exit code.
 
     rclpy's own handlers would shut the context down at the signal, under a frame that
@@ -51,7 +60,11 @@ def run_node(node_factory, args=None, *, num_threads: int = 2) -> int:
     code = 0
     try:
         node = node_factory()
-        executor = _DrainingExecutor(num_threads=num_threads)
+        # One thread by default: the nodes' callbacks only queue frames for their worker
+        # thread, and a MultiThreadedExecutor costs ~3 ms of CPU per callback here; under
+        # use_sim_time (a /clock message every few ms) that was most of a core per node.
+        executor = (_StoppableExecutor() if num_threads <= 1
+                    else _DrainingExecutor(num_threads=num_threads))
         executor.add_node(node)
         # spin() keeps its wait set between callbacks (spin_once rebuilds it: far too
         # slow at sensor rates); it runs beside the main thread, which waits for a signal.

@@ -106,6 +106,17 @@ def mimo_settings(p: dict):
     return _settings(MimoSettings, p, merge=merge)
 
 
+def node_settings(node: str, params: dict):
+    """The pipeline settings a node builds from its parameters (``node_parameters``)."""
+    if node == "mimo":
+        return mimo_settings(params)
+    if node == "lmd":
+        from lmd_ros.pipeline import LmdSettings as cls
+    else:
+        from lms_ros.pipeline import LmsSettings as cls
+    return _settings(cls, params)
+
+
 def _models(node: str, params: dict, defaults, feature_names):
     from lidar_quality_core.meta_model import MetaModels
 
@@ -130,9 +141,9 @@ class Runner:
 
 
 def _lmd(p: dict) -> Runner:
-    from lmd_ros.pipeline import LmdProcessor, LmdSettings, default_model_paths
+    from lmd_ros.pipeline import LmdProcessor, default_model_paths
 
-    s = _settings(LmdSettings, p)
+    s = node_settings("lmd", p)
     proc = LmdProcessor(s, _models("lmd", p, default_model_paths(s.proposal_mode),
                                    s.feature_names()), min_confidence=p["min_confidence"])
     keys = ["points"] + (["detections"] if s.proposal_mode != "exact" else []) + (
@@ -148,9 +159,9 @@ def _lmd(p: dict) -> Runner:
 
 
 def _lms(p: dict) -> Runner:
-    from lms_ros.pipeline import LmsProcessor, LmsSettings, default_model_paths
+    from lms_ros.pipeline import LmsProcessor, default_model_paths
 
-    s = _settings(LmsSettings, p)
+    s = node_settings("lms", p)
     proc = LmsProcessor(s, _models("lms", p, default_model_paths(), s.metric_names()))
     # the segmentation cloud carries points and probabilities; separately: /lidar/points
     keys = ("points", "segmentation") if p["separate_probabilities"] else ("segmentation",)

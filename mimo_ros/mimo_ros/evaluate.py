@@ -328,14 +328,6 @@ def acceptance(res: dict) -> dict:
 
 
 # ------------------------------------------------------------------ figures
-def _draw_box(ax, box, **kw):
-    from lidar_quality_core.box_geometry import bev_corners
-
-    c = bev_corners(np.asarray(box, np.float64).reshape(1, 7))[0]
-    c = np.vstack([c, c[:1]])
-    ax.plot(c[:, 0], c[:, 1], **kw)
-
-
 def qualitative_png(path, ds: MimoDataset, frame: int, models: dict, *, max_range: float = 45.0):
     """The paper's figure 4 for one frame: BEV overview (points, ground truth, merged boxes
     coloured by meta confidence) and two zoomed true positives (near, far) with their head
@@ -343,6 +335,7 @@ def qualitative_png(path, ds: MimoDataset, frame: int, models: dict, *, max_rang
     import matplotlib
 
     from lidar_quality_core.pointcloud import finite_mask, xyz_intensity
+    from lidar_quality_core.report_plots import draw_bev_box
     from lidar_quality_ros.perception_bag import head_count, perception_frames
 
     from .dataset import settings_for
@@ -376,10 +369,10 @@ def qualitative_png(path, ds: MimoDataset, frame: int, models: dict, *, max_rang
     ax = fig.add_subplot(gs[0, :])
     ax.scatter(xyz[show, 0], xyz[show, 1], s=0.2, c="0.65", linewidths=0)
     for b, ig in zip(gb, ign):
-        _draw_box(ax, b, color="tab:green", lw=0.9, ls=":" if ig else "-")
+        draw_bev_box(ax, b, color="tab:green", lw=0.9, ls=":" if ig else "-")
     cmap = matplotlib.colormaps["RdYlGn"]
     for i in range(len(m)):
-        _draw_box(ax, m.boxes[i], color=cmap(float(np.clip(conf[i], 0, 1))), lw=1.6)
+        draw_bev_box(ax, m.boxes[i], color=cmap(float(np.clip(conf[i], 0, 1))), lw=1.6)
     sm = matplotlib.cm.ScalarMappable(cmap=cmap, norm=matplotlib.colors.Normalize(0, 1))
     fig.colorbar(sm, ax=ax, fraction=0.03, pad=0.01, shrink=0.6, label="meta confidence")
     # the scene's lateral extent (streets are long and narrow), within +-max_range
@@ -411,16 +404,16 @@ def qualitative_png(path, ds: MimoDataset, frame: int, models: dict, *, max_rang
         heads, idx = m.members(i)
         for h, r in zip(heads.tolist(), idx.tolist()):
             hb = fr.arrays[h].boxes[r]
-            _draw_box(axz, hb, color=head_colors[fr.heads_used[h] % 4], lw=1.0, ls="--",
+            draw_bev_box(axz, hb, color=head_colors[fr.heads_used[h] % 4], lw=1.0, ls="--",
                       label=f"head {fr.heads_used[h]}")
         var = st.predictive_variance[i]
         wide = b.copy()
         wide[3] += 2 * 1.96 * np.sqrt(max(var[3], 0))
         wide[4] += 2 * 1.96 * np.sqrt(max(var[4], 0))
-        _draw_box(axz, wide, color="0.5", lw=2.5, alpha=0.6, label="95 % l, w")
-        _draw_box(axz, b, color="tab:blue", lw=1.8, label="merged")
+        draw_bev_box(axz, wide, color="0.5", lw=2.5, alpha=0.6, label="95 % l, w")
+        draw_bev_box(axz, b, color="tab:blue", lw=1.8, label="merged")
         if fm.det_gt[i] >= 0:
-            _draw_box(axz, gb[fm.det_gt[i]], color="tab:green", lw=1.2, label="ground truth")
+            draw_bev_box(axz, gb[fm.det_gt[i]], color="tab:green", lw=1.2, label="ground truth")
         sel = (np.abs(xyz[:, 0] - b[0]) < 4) & (np.abs(xyz[:, 1] - b[1]) < 4)
         axz.scatter(xyz[sel, 0], xyz[sel, 1], s=2, c="k", linewidths=0)
         half = 0.75 * max(b[3], b[4]) + 0.8

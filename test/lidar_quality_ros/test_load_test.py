@@ -23,6 +23,10 @@ def test_memory_growth_after_warmup():
     assert m["rss_warm_mb"] == pytest.approx(200_000 / 1024, abs=0.1)
     assert m["rss_end_mb"] == pytest.approx(210_000 / 1024, abs=0.1)
     assert m["growth_pct"] == pytest.approx(5.0)
+    assert m["growth_second_half_pct"] == pytest.approx(5.0)  # the step is at the very end
+    ramp = load_test.memory_growth(t, 100_000 + 1000 * t, warmup_s=20.0, window_s=4.0)
+    # medians of t = 96..99 (end) and t = 58..61 (the middle of 20..99)
+    assert ramp["growth_second_half_pct"] == pytest.approx(38_000 / 159_500 * 100, abs=0.01)
     assert m["rss_max_mb"] == pytest.approx(210_000 / 1024, abs=0.1)
     assert m["slope_mb_per_min"] > 0
     assert load_test.memory_growth(t[:5], kb[:5], warmup_s=30.0, window_s=5.0) == {"samples": 5}

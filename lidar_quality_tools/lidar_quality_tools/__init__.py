@@ -1,0 +1,1 @@
+"""The suite end to end: ``demo`` (``make demo``) and ``process`` (offline batch processing)."""

@@ -1,0 +1,394 @@
+"""``make demo``: the three nodes on a replayed perception bag, evaluated against the ground truth.
+
+1. The input: a perception bag (``make demo`` generates the simulated ``demo`` split,
+   100 frames at 10 Hz, into ``data/perception/demo`` once, then reuses it).
+2. ``lmd_node``, ``lms_node`` and ``mimo_node`` start as processes, as a user starts them:
+   installed executable, ``config/<node>.yaml``, namespace ``/lmd`` ``/lms`` ``/mimo``,
+   ``use_sim_time:=true``, inputs remapped onto the bag's topics (LMS reads the points
+   and the probabilities on two topics, so the ring field gives the image rows, as the
+   shipped models were trained).
+3. ``bag_player`` (a process) replays the bag in real time with ``/clock``; a recorder in
+   this process writes the nodes' outputs (raw CDR, log time = header stamp) to
+   ``<out>/outputs`` and notes when every input and output arrived.
+4. :mod:`.evaluation` scores the recorded outputs against the ground truth; the report
+   (``report.md``, ``summary.json``, PNG plots) goes to ``<out>``.
+5. A summary is printed. Exit code 1 if a node died, produced nothing, or a recorded
+   output did not match its input.
+
+Latency: from the publication of a frame's last input by the player to the reception of
+the node's output by the recorder (the middleware's source and reception timestamps).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import struct
+import subprocess
+import sys
+import threading
+import time
+from functools import partial
+from pathlib import Path
+
+import numpy as np
+
+DEFAULT_DATA = Path("data/perception/demo")
+_STAMP = struct.Struct("<iI")  # header stamp after the 4-byte CDR encapsulation
+_NS = 1_000_000_000
+
+#: node -> recorded outputs (relative name, type); the first is its main output
+OUTPUTS = {
+    "lmd": [("output/detections", "vision_msgs/msg/Detection3DArray"),
+            ("output/quality", "lidar_quality_msgs/msg/DetectionQualityArray")],
+    "lms": [("output/segments", "lidar_quality_msgs/msg/SegmentQualityArray"),
+            ("output/points", "sensor_msgs/msg/PointCloud2")],
+    "mimo": [("output/detections", "vision_msgs/msg/Detection3DArray"),
+             ("output/uncertainty", "lidar_quality_msgs/msg/ClusterUncertaintyArray")],
+}
+
+
+def wiring(num_heads: int = 2) -> dict:
+    """node -> (parameter overrides, remaps input -> bag topic)."""
+    heads = {}
+    for k in range(num_heads):
+        heads[f"input/head_{k}"] = f"/perception/head_{k}"
+        heads[f"input/head_{k}/variance"] = f"/perception/head_{k}/variance"
+    sim = {"use_sim_time": "true"}
+    return {
+        "lmd": (sim, {"input/points": "/lidar/points",
+                      "input/detections": "/perception/detections",
+                      "input/proposals": "/perception/proposals"}),
+        "lms": ({**sim, "separate_probabilities": "true"},
+                {"input/points": "/lidar/points",
+                 "input/probabilities": "/perception/segmentation"}),
+        "mimo": (sim, heads),
+    }
+
+
+class Recorder:
+    """Raw subscriptions: the output topics written to a bag; for every (topic, stamp) the
+    middleware's timestamps, publication (source) and reception [ns, system clock], taken
+    when the sample arrived, not when this process got round to it."""
+
+    def __init__(self, node, bag_path: Path, record: dict[str, str], watch: dict[str, str]):
+        from lidar_quality_ros.bag_io import BagWriter, message_class
+        from lidar_quality_ros.qos import SENSOR_QOS, output_qos
+
+        self.lock = threading.Lock()
+        self.times: dict[str, dict[int, tuple[int, int]]] = {t: {} for t in {**record, **watch}}
+        self.writer = BagWriter(bag_path)
+        self.writer.__enter__()
+        self.closed = False
+        self.subs = {}
+        self._qos = output_qos(50)
+        for topic, msgtype in record.items():
+            self.subs[topic] = node.create_subscription(
+                message_class(msgtype), topic, partial(self._on, topic, msgtype), self._qos,
+                raw=True)
+        for topic, msgtype in watch.items():
+            self.subs[topic] = node.create_subscription(
+                message_class(msgtype), topic, partial(self._on, topic, None), SENSOR_QOS,
+                raw=True)
+
+    def _on(self, topic: str, msgtype: str | None, data: bytes, info: dict) -> None:
+        sec, nsec = _STAMP.unpack_from(data, 4)
+        stamp = sec * _NS + nsec
+        with self.lock:
+            self.times[topic].setdefault(stamp, (info["source_timestamp"],
+                                                 info["received_timestamp"]))
+            if msgtype is not None and not self.closed:
+                self.writer.write(topic, msgtype, stamp, data, qos=[self._qos])
+
+    def count(self, topic: str) -> int:
+        with self.lock:
+            return len(self.times[topic])
+
+    def close(self) -> None:
+        with self.lock:
+            if not self.closed:
+                self.closed = True
+                self.writer.__exit__(None, None, None)
+
+
+def _pct(x, q):
+    return round(float(np.percentile(x, q)), 2) if len(x) else None
+
+
+def latencies(rec: Recorder, inputs: list[str], output: str) -> np.ndarray:
+    """[ms] per output frame: reception of the output - publication of the frame's last
+    input (the bag player's publish calls)."""
+    with rec.lock:
+        outs = dict(rec.times[output])
+        ins = [dict(rec.times[t]) for t in inputs]
+    lat = [(recv - max(d[s][0] for d in ins)) / 1e6 for s, (_, recv) in outs.items()
+           if all(s in d for d in ins)]
+    return np.array(sorted(lat))
+
+
+def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
+    """Steps 2-3: start the nodes, replay ``bag``, record. Returns the live figures."""
+    from diagnostic_msgs.msg import DiagnosticArray
+    from lidar_quality_ros.bag_io import bag_info
+    from lidar_quality_ros.load_test import DiagnosticsLog, node_command
+    from lidar_quality_ros.perception_bag import head_count
+    from lidar_quality_ros.qos import output_qos
+    from lidar_quality_ros.testing import RosHarness
+
+    info = bag_info(bag)
+    wire = wiring(head_count(bag))
+    logs = out / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    played = sorted({t for _, remaps in wire.values() for t in remaps.values()})
+    missing = [t for t in played if t not in info.topics]
+    if missing:
+        raise SystemExit(f"demo: {bag} lacks {missing}: not a perception bag "
+                         "(reference_perception.cli bag / split)")
+    record = {f"/{n}/{rel}": typ for n, outs in OUTPUTS.items() for rel, typ in outs}
+    watch = {t: info.topics[t].msgtype for t in played}
+    live: dict = {"nodes": {}}
+    with RosHarness() as ros:
+        say(f"demo: ROS domain {ros.domain_id} (loopback only); starting lmd_node, lms_node, "
+            "mimo_node")
+        procs, params = {}, {}
+        for name, (p, remaps) in wire.items():
+            argv, params[name] = node_command(name, params=p, remaps=remaps)
+            with open(logs / f"{name}_node.log", "w") as fh:  # the child keeps its own copy
+                procs[name] = ros.spawn(argv, stdout=fh, stderr=subprocess.STDOUT,
+                                        extra_env={"PYTHONFAULTHANDLER": "1"})
+        diag = DiagnosticsLog()
+        ros.node.create_subscription(DiagnosticArray, "/diagnostics", diag, output_qos(50))
+        rec = Recorder(ros.node, out / "outputs", record, watch)
+        try:
+            for topic, sub in rec.subs.items():
+                if topic in record and not ros.wait_for_match(sub, timeout=120.0):
+                    dead = {n: p.poll() for n, p in procs.items() if p.poll() is not None}
+                    raise RuntimeError(f"no publisher of {topic} after 120 s (exited: {dead}; "
+                                       f"logs in {logs})")
+            player_json = out / "player.json"
+            from ament_index_python.packages import get_package_prefix
+            exe = Path(get_package_prefix("lidar_quality_ros")) / "lib" / "lidar_quality_ros" / "bag_player"
+            # every played topic: its node and the recorder subscribed before the first message
+            argv = [str(exe), str(bag), "--topics", *played, "--rate", str(rate),
+                    "--wait-for-subscribers", "2", "--wait-timeout", "60",
+                    "--summary-json", str(player_json)]
+            say(f"demo: replaying {bag} ({info.topics['/lidar/points'].count} frames, "
+                f"{len(played)} topics) at rate {rate:g} with /clock")
+            t0 = time.monotonic()
+            with open(logs / "bag_player.log", "w") as fh:
+                player = ros.spawn(argv, stdout=fh, stderr=subprocess.STDOUT)
+            duration = (info.end_ns - info.start_ns) / _NS
+            try:
+                player.wait(timeout=120 + 3 * duration / rate)
+            except subprocess.TimeoutExpired:
+                player.kill()
+                raise RuntimeError(f"bag_player did not finish (log {logs / 'bag_player.log'})")
+            if player.returncode:
+                raise RuntimeError(f"bag_player exited with {player.returncode} "
+                                   f"(log {logs / 'bag_player.log'})")
+            live["wall_s"] = round(time.monotonic() - t0, 1)
+            live["player"] = json.loads(player_json.read_text())
+            # the last frames' outputs: wait until nothing new arrives for 3 s
+            last, quiet = -1, time.monotonic()
+            while time.monotonic() - quiet < 3.0:
+                n = sum(rec.count(t) for t in record)
+                if n != last:
+                    last, quiet = n, time.monotonic()
+                time.sleep(0.2)
+            time.sleep(1.5)  # one more diagnostics period
+            diag_values = {n: diag.values(n) for n in wire}
+        finally:
+            for p in procs.values():
+                if p.poll() is None:
+                    p.send_signal(signal.SIGINT)
+            codes = {}
+            for n, p in procs.items():
+                try:
+                    codes[n] = p.wait(timeout=30)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    codes[n] = "killed (no exit 30 s after SIGINT)"
+            rec.close()
+    published = {t: v["count"] for t, v in live["player"]["topics"].items()}
+    for name, (_, remaps) in wire.items():
+        inputs = list(remaps.values())
+        main = f"/{name}/{OUTPUTS[name][0][0]}"
+        lat = latencies(rec, inputs, main)
+        frames_in = min(published.get(t, 0) for t in inputs)
+        frames_out = rec.count(main)
+        live["nodes"][name] = {
+            "frames_in": frames_in, "frames_out": frames_out,
+            "dropped": frames_in - frames_out,
+            "latency_ms_p50": _pct(lat, 50), "latency_ms_p99": _pct(lat, 99),
+            "latency_ms_max": round(float(lat.max()), 2) if len(lat) else None,
+            "node_diagnostics": {k: v for k, v in diag_values[name].items()
+                                 if k.startswith(("dropped", "frames", "latency"))},
+            "exit_code": codes[name], "log": str(logs / f"{name}_node.log")}
+        live["nodes"][name]["_latencies"] = lat
+    live["params"] = params
+    return live
+
+
+def _settings(params: dict):
+    """LMS and MIMO settings as the nodes built them from their parameters."""
+    from .process import node_settings
+
+    return node_settings("lms", params["lms"]), node_settings("mimo", params["mimo"])
+
+
+def write_report(out: Path, summary: dict, ev, live: dict) -> list[Path]:
+    """``report.md`` and the PNG plots; returns the plots."""
+    from lidar_quality_core import report_plots as rp
+    from lidar_quality_core.pointcloud import xyz_intensity
+
+    from .evaluation import BASELINES
+
+    figs = []
+    names = {"lmd": "LMD", "lms": "LMS", "mimo": "MIMO"}
+    for m, r in ev.rows.items():
+        tp, conf, base = r.column("tp"), r.column("confidence"), r.column("baseline")
+        ok = np.isfinite(conf) & np.isfinite(base)
+        if ok.sum() < 2:
+            continue
+        figs.append(rp.reliability_png(out / f"{m}_reliability.png", {
+            f"{names[m]} confidence": (tp[ok], conf[ok]), BASELINES[m]: (tp[ok], base[ok])},
+            title=f"{names[m]}: reliability of the recorded confidence vs {BASELINES[m]}"))
+        figs.append(rp.scatter_png(out / f"{m}_iou_scatter.png", r.column("iou"),
+                                   r.column("predicted_iou"), title=f"{names[m]} predicted IoU",
+                                   xlabel="true IoU" + (" (adjusted)" if m == "lms" else "")))
+    ex = ev.example.get("lmd")
+    if ex is not None:
+        xyz, _ = xyz_intensity(ex["points"])
+        figs.append(rp.bev_boxes_png(
+            out / "lmd_bev_frame.png", xyz[:, :2], ex["boxes"], ex["confidence"],
+            gt_boxes=ex["gt_boxes"], title=f"LMD, frame {ex['frame']}: detections coloured by "
+                                           "meta confidence (dashed: ground truth)"))
+    ex = ev.example.get("lms")
+    if ex is not None:
+        res, inp = ex["result"], ex["input"]
+        seg = res.point_segment
+        pred = np.full(res.n_segments, np.nan)
+        true = np.full(res.n_segments, np.nan)
+        sid = np.asarray(ex["segment_ids"])
+        pred[sid], true[sid] = ex["predicted_iou"], ex["iou"]
+        has = seg >= 0
+        per_pred = np.where(has, pred[np.maximum(seg, 0)], np.nan)
+        per_true = np.where(has, true[np.maximum(seg, 0)], np.nan)
+        figs.append(rp.bev_values_png(
+            out / "lms_segmentation_frame.png", inp.xyz[:, :2],
+            {"predicted IoU (LMS node)": per_pred, "true IoU_adj": per_true},
+            label="segment IoU", title=f"LMS, frame {ex['frame']}: segments coloured by IoU"))
+    lat = {names[n]: v["_latencies"] for n, v in live["nodes"].items()}
+    figs.append(rp.histogram_png(out / "latency.png", lat, xlabel="latency [ms] (last input "
+                                 "published -> output received)", title="Per-frame latency over DDS"))
+    (out / "report.md").write_text(report_markdown(summary, figs))
+    return figs
+
+
+def report_markdown(summary: dict, figs: list[Path]) -> str:
+    from lidar_quality_core.report_plots import markdown_table
+
+    from .evaluation import BASELINES
+
+    s = summary
+    L = ["# Demo report", "",
+         f"Bag `{s['bag']}`: {s['frames']} frames replayed in real time (rate {s['rate']:g}) "
+         f"into lmd_node, lms_node and mimo_node (separate processes, `use_sim_time`), "
+         f"outputs recorded to `{s['outputs_bag']}` and evaluated against the ground truth.",
+         "", "## Frames and latency", "",
+         markdown_table(["node", "frames in", "frames out", "dropped", "latency p50 [ms]",
+                         "latency p99 [ms]", "exit"],
+                        [[n, v["frames_in"], v["frames_out"], v["dropped"], v["latency_ms_p50"],
+                          v["latency_ms_p99"], v["exit_code"]] for n, v in s["nodes"].items()],
+                        digits=1),
+         "Latency: from the publication of a frame's last input (bag player) to the "
+         "reception of the node's output (recorder), by the middleware's timestamps.", "",
+         "## Quality of the recorded estimates", "",
+         markdown_table(["node", "rows", "AUROC", "AUROC baseline", "ECE", "ECE baseline", "R²",
+                         "baseline"],
+                        [[n, v["n"], v["auroc"], v["auroc_baseline"], v["ece"], v["ece_baseline"],
+                          v["r2"], BASELINES[n]] for n, v in s["nodes"].items()]),
+         "Rows: LMD detections, LMS segments with a defined IoU_adj, MIMO merged boxes. "
+         "True positive: LMD BEV IoU >= 0.5 with any ground-truth box; MIMO with one of "
+         "its class; LMS IoU_adj > 0. R²: predicted against true IoU.", ""]
+    bad = {n: v for n, v in s["nodes"].items() if v.get("mismatched")}
+    if bad:
+        L += [f"Mismatched outputs (left out): {({n: v['mismatched'] for n, v in bad.items()})}", ""]
+    L += ["## Plots", ""] + [f"![{p.stem}]({p.name})" for p in figs] + [""]
+    return "\n".join(L)
+
+
+def print_summary(s: dict) -> None:
+    print(f"\ndemo: {s['frames']} frames of {s['bag']}; report {s['report']}")
+    print(f"{'node':5s} {'in':>5s} {'out':>5s} {'drop':>5s} {'p50 ms':>7s} {'p99 ms':>7s} "
+          f"{'AUROC':>6s} {'(base)':>7s} {'ECE':>6s} {'(base)':>7s} {'R2':>6s}  baseline")
+
+    def f(x, w, d=3):
+        return f"{x:{w}.{d}f}" if isinstance(x, (int, float)) and x is not None else f"{'-':>{w}s}"
+
+    from .evaluation import BASELINES
+    for n, v in s["nodes"].items():
+        print(f"{n:5s} {v['frames_in']:5d} {v['frames_out']:5d} {v['dropped']:5d} "
+              f"{f(v['latency_ms_p50'], 7, 1)} {f(v['latency_ms_p99'], 7, 1)} "
+              f"{f(v['auroc'], 6)} {f(v['auroc_baseline'], 7)} {f(v['ece'], 6)} "
+              f"{f(v['ece_baseline'], 7)} {f(v['r2'], 6)}  {BASELINES[n]}")
+
+
+def main(argv=None) -> int:
+    from lidar_quality_core.jsonable import jsonable
+    from lidar_quality_ros.perception_bag import resolve_bags
+
+    from .evaluation import evaluate
+
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--bag", type=Path, default=DEFAULT_DATA,
+                    help="perception bag, or a folder of them (the first is used)")
+    ap.add_argument("--out", type=Path, default=Path("out/demo"))
+    ap.add_argument("--rate", type=float, default=1.0, help="playback speed")
+    a = ap.parse_args(argv)
+    try:
+        bag = resolve_bags([a.bag])[0]
+    except (ValueError, FileNotFoundError, IndexError) as e:
+        print(f"demo: no perception bag at {a.bag} ({e}); `make demo` generates it "
+              "(make data/perception/demo/.done)", file=sys.stderr)
+        return 2
+    if not os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE"):
+        print("demo: warning: FASTRTPS_DEFAULT_PROFILES_FILE is unset (run through "
+              "scripts/with_env.sh): large clouds may be lost between processes", file=sys.stderr)
+    out = a.out
+    if (out / "outputs").exists():
+        import shutil
+        shutil.rmtree(out / "outputs")
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.monotonic()
+    try:
+        live = run_live(bag, out, rate=a.rate)
+    except RuntimeError as e:
+        print(f"demo: FAILED: {e}", file=sys.stderr)
+        return 1
+    print("demo: evaluating the recorded outputs against the ground truth", flush=True)
+    lms_s, mimo_s = _settings(live["params"])
+    ev = evaluate(bag, out / "outputs", lms_settings=lms_s, mimo_settings=mimo_s)
+    q = ev.quality()
+    summary = {"bag": str(bag), "frames": ev.frames, "rate": a.rate,
+               "outputs_bag": str(out / "outputs"), "report": str(out / "report.md"),
+               "player": {k: live["player"][k] for k in ("achieved_rate", "late_ms_p99",
+                                                         "wall_s")},
+               "nodes": {n: {**{k: v for k, v in live["nodes"][n].items()
+                                if not k.startswith("_")}, **q[n]} for n in live["nodes"]}}
+    write_report(out, summary, ev, live)
+    summary["elapsed_s"] = round(time.monotonic() - t0, 1)
+    (out / "summary.json").write_text(json.dumps(jsonable(summary), indent=1))
+    print_summary(summary)
+    failed = [n for n, v in summary["nodes"].items()
+              if v["exit_code"] != 0 or v["frames_out"] == 0 or v["mismatched"]]
+    if failed:
+        print(f"demo: FAILED for {failed} (died, produced nothing or mismatched outputs; "
+              "see the logs in " + str(out / "logs") + ")", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

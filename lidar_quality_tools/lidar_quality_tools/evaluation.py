@@ -1,0 +1,258 @@
+"""Quality of the nodes' recorded outputs against the ground truth.
+
+Input: the perception bag (clouds, detector outputs, ground truth) and a bag of the nodes'
+outputs (recorded by the demo, or written by ``process_bag``: then both are one bag),
+joined by header stamp. Per method the targets are those of its training data:
+
+- LMD (``/lmd/output/quality``): each detection's BEV IoU with its best ground-truth box
+  (any class), true positive at IoU >= 0.5 (``lmd_ros.dataset``); baseline: the detector
+  score (``original_score``).
+- LMS (``/lms/output/segments``): each segment's adjusted IoU, true segment at IoU_adj > 0
+  (``lms_ros.segment_metrics.segment_targets``), computed on the segmentation recomputed
+  from the input and checked against the recorded one (segment count, classes, sizes);
+  baseline: the segment's mean top-class softmax probability (1 - mean V).
+- MIMO (``/mimo/output/uncertainty``): each merged box's BEV IoU with its best
+  ground-truth box of its class, true positive at >= 0.5 (``mimo_ros.dataset``); the
+  merge is recomputed from the heads and checked against the recorded ids; baseline: the
+  merged score.
+
+A frame whose recorded output does not match its input (other ids, other segments) is
+counted as ``mismatched`` and left out, so a wrong output cannot pass for a right one.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from lidar_quality_core import metrics
+
+#: method -> output topics (namespaced as the demo and ``process_bag`` run the nodes)
+OUTPUT_TOPICS = {
+    "lmd": {"quality": "/lmd/output/quality", "detections": "/lmd/output/detections"},
+    "lms": {"segments": "/lms/output/segments"},
+    "mimo": {"uncertainty": "/mimo/output/uncertainty", "detections": "/mimo/output/detections"},
+}
+METHODS = tuple(OUTPUT_TOPICS)
+BASELINES = {"lmd": "detector score", "lms": "mean softmax probability",
+             "mimo": "merged score"}
+TP_IOU = 0.5
+
+
+class Mismatch(ValueError):
+    """A recorded output that does not belong to its input frame."""
+
+
+@dataclass
+class MethodRows:
+    """Evaluated rows of one method (one per detection / segment with a confidence)."""
+
+    method: str
+    frames_in: int = 0        # input frames with this method's inputs
+    frames_out: int = 0       # of which with a recorded output
+    mismatched: int = 0       # recorded outputs that do not match their input (left out)
+    mismatch_reasons: list = field(default_factory=list)
+    parts: dict = field(default_factory=lambda: {k: [] for k in (
+        "stamp", "tp", "iou", "confidence", "predicted_iou", "baseline")})
+
+    def add(self, stamp_ns: int, **cols) -> None:
+        n = len(cols["confidence"])
+        self.parts["stamp"].append(np.full(n, stamp_ns, np.int64))
+        for k, v in cols.items():
+            self.parts[k].append(np.asarray(v, np.float64).reshape(n))
+
+    def column(self, key: str) -> np.ndarray:
+        p = self.parts[key]
+        return np.concatenate(p) if p else np.zeros(0, np.int64 if key == "stamp" else float)
+
+    def quality(self, n_bins: int = 10) -> dict:
+        """AUROC / ECE of the confidence and of the baseline, R² of the predicted IoU."""
+        conf, base = self.column("confidence"), self.column("baseline")
+        tp, iou, piou = self.column("tp"), self.column("iou"), self.column("predicted_iou")
+        ok = np.isfinite(conf) & np.isfinite(iou) & np.isfinite(base)
+        out = {"n": int(ok.sum()), "positive_rate": float(tp[ok].mean()) if ok.any() else None,
+               "baseline": BASELINES[self.method]}
+        both = ok.any() and 0 < tp[ok].sum() < ok.sum()  # AUROC needs both outcomes
+        out["auroc"] = metrics.auroc(tp[ok], conf[ok]) if both else None
+        out["auroc_baseline"] = metrics.auroc(tp[ok], base[ok]) if both else None
+        out["ece"] = metrics.ece(tp[ok], np.clip(conf[ok], 0, 1), n_bins) if ok.any() else None
+        out["ece_baseline"] = (metrics.ece(tp[ok], np.clip(base[ok], 0, 1), n_bins)
+                               if ok.any() else None)
+        okr = ok & np.isfinite(piou)
+        out["r2"] = metrics.r2(iou[okr], piou[okr]) if okr.sum() > 1 else None
+        return out
+
+
+# ------------------------------------------------------------------ per frame
+def _gt(gt_msg):
+    from lidar_quality_core.boxes import detections_to_arrays
+
+    g = detections_to_arrays(gt_msg)
+    return g.boxes[g.valid], [c for c, ok in zip(g.labels, g.valid) if ok]
+
+
+def lmd_rows(detections_msg, gt_msg, quality_msg) -> dict:
+    """Rows of one frame: the recorded quality of each input detection and its target."""
+    from lidar_quality_core.boxes import detections_to_arrays
+    from lidar_quality_core.detection_eval import match_frame
+
+    d = detections_to_arrays(detections_msg)
+    q = quality_msg.detections
+    if [x.detection_id for x in q] != list(d.ids) or \
+            [x.detection_index for x in q] != list(range(len(d.ids))):
+        raise Mismatch(f"LMD quality lists {len(q)} detections, the input {len(d.ids)} "
+                       "(or other ids / order)")
+    conf = np.array([x.confidence for x in q], float)
+    ok = d.valid & np.isfinite(conf)
+    gt_boxes, gt_labels = _gt(gt_msg)
+    labels = [c for c, k in zip(d.labels, ok) if k]
+    m = match_frame(d.boxes[ok], d.scores[ok], labels, gt_boxes, gt_labels, iou_threshold=TP_IOU)
+    idx = np.flatnonzero(ok)
+    return {"confidence": conf[idx], "predicted_iou": [q[i].predicted_iou for i in idx],
+            "baseline": [q[i].original_score for i in idx], "iou": m.iou_any,
+            "tp": m.iou_any >= TP_IOU, "boxes": d.boxes[idx], "gt_boxes": gt_boxes}
+
+
+def lms_rows(points_msg, segmentation_msg, points_gt_msg, segments_msg, settings,
+             *, separate: bool = True) -> dict:
+    """Rows of one frame: recorded quality of each segment with a defined IoU_adj.
+
+    ``separate``: the node read the points and the probabilities on two topics (the ring
+    field of the points then gives the image rows, as the shipped models were trained).
+    """
+    from lms_ros.dataset import _gt_labels, frame_rows
+    from lms_ros.pipeline import decode
+
+    inp = (decode(points_msg, settings, probabilities_msg=segmentation_msg) if separate
+           else decode(segmentation_msg, settings))
+    res, iou, iou_adj, keep = frame_rows(inp, _gt_labels(points_gt_msg), settings)
+    s = segments_msg.segments
+    rec = np.array([(x.segment_id, x.class_index, x.point_count) for x in s],
+                   np.int64).reshape(-1, 3)
+    if len(s) != res.n_segments or not (
+            np.array_equal(rec[:, 0], np.arange(res.n_segments))
+            and np.array_equal(rec[:, 1], res.segment_class)
+            and np.array_equal(rec[:, 2], res.n_points)):
+        raise Mismatch(f"LMS recorded {len(s)} segments, the input gives {res.n_segments} "
+                       "(or other classes / sizes)")
+    sid = res.kept_ids[keep]
+    conf = np.array([s[i].confidence for i in sid.tolist()], float)
+    v = settings.metric_names().index("mean_V")
+    return {"confidence": conf, "predicted_iou": [s[i].predicted_iou for i in sid.tolist()],
+            "baseline": 1.0 - res.features[keep, v], "iou": iou_adj[keep],
+            "tp": iou_adj[keep] > 0, "segment_ids": sid, "result": res, "input": inp}
+
+
+def mimo_rows(head_msgs, variance_msgs, gt_msg, uncertainty_msg, settings) -> dict:
+    """Rows of one frame: the merge recomputed from the heads, checked against the
+    recorded ids, with the recorded confidence and predicted IoU."""
+    from lidar_quality_core.detection_eval import match_frame
+    from mimo_ros.pipeline import frame_features
+
+    frame = frame_features(head_msgs, variance_msgs, settings)
+    ids = frame.merged_ids()
+    c = uncertainty_msg.clusters
+    if [x.detection_id for x in c] != list(ids):
+        raise Mismatch(f"MIMO recorded {len(c)} merged boxes, the heads give {len(ids)} "
+                       "(or other ids)")
+    m = frame.merge
+    gt_boxes, gt_labels = _gt(gt_msg)
+    labels = frame.class_labels()
+    mt = match_frame(m.boxes, m.scores, labels, gt_boxes, gt_labels, iou_threshold=TP_IOU)
+    return {"confidence": [x.confidence for x in c], "predicted_iou": [x.predicted_iou for x in c],
+            "baseline": m.scores, "iou": mt.iou_same_class, "tp": mt.iou_same_class >= TP_IOU,
+            "boxes": m.boxes, "gt_boxes": gt_boxes}
+
+
+# ------------------------------------------------------------------ bags
+def read_outputs(bag: Path | str, methods=METHODS) -> dict[str, dict[int, object]]:
+    """Recorded output messages by topic and header stamp [ns] (lms points left out)."""
+    from lidar_quality_ros.bag_io import bag_topics, read_bag
+
+    present = bag_topics(bag)
+    topics = {t for m in methods for t in OUTPUT_TOPICS[m].values() if t in present}
+    out: dict[str, dict[int, object]] = {t: {} for t in topics}
+    for m in read_bag(bag, topics=topics):
+        msg = m.decode()
+        st = msg.header.stamp
+        out[m.topic][st.sec * 1_000_000_000 + st.nanosec] = msg
+    return out
+
+
+@dataclass
+class Evaluation:
+    rows: dict                                   # method -> MethodRows
+    frames: int                                  # input frames read
+    example: dict = field(default_factory=dict)  # method -> rows of one frame (plots)
+
+    def quality(self) -> dict:
+        return {m: {"frames_in": r.frames_in, "frames_out": r.frames_out,
+                    "mismatched": r.mismatched, **r.quality()} for m, r in self.rows.items()}
+
+
+def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=None,
+             mimo_settings=None, lms_separate: bool = True, example_frame: int | None = None,
+             progress: bool = False) -> Evaluation:
+    """Join the recorded outputs with the inputs and ground truth of ``perception_bag``
+    (``outputs_bag`` None: the outputs are in it too) and collect every method's rows.
+    ``example_frame`` (default: the middle one): the frame whose rows are kept for plots."""
+    from lidar_quality_core.progress import Progress
+    from lidar_quality_ros.bag_io import bag_info
+    from lidar_quality_ros.perception_bag import perception_frames
+    from lms_ros.pipeline import LmsSettings
+    from mimo_ros.pipeline import MimoSettings
+
+    lms_settings = lms_settings or LmsSettings()
+    mimo_settings = mimo_settings or MimoSettings()
+    outs = read_outputs(outputs_bag or perception_bag, methods)
+    info = bag_info(perception_bag)
+    n_total = info.topics["/lidar/points"].count if "/lidar/points" in info.topics else None
+    if example_frame is None:
+        example_frame = (n_total or 0) // 2
+    rows = {m: MethodRows(m) for m in methods}
+    ev = Evaluation(rows, 0)
+    bar = Progress("evaluate", n_total, progress)
+    want = ("points", "points_gt", "gt_objects", "detections", "segmentation")
+    heads = mimo_settings.num_heads if "mimo" in methods else 0
+    for f in perception_frames(perception_bag, want=want, heads=heads):
+        bar.update()
+        ev.frames += 1
+        if f.gt_objects is None or f.points_gt is None:
+            continue  # no targets without ground truth
+        for m in methods:
+            r = rows[m]
+            topics = OUTPUT_TOPICS[m]
+            main = outs.get(next(iter(topics.values())), {})
+            if m == "lmd" and f.detections is not None:
+                args = (f.detections, f.gt_objects)
+            elif m == "lms" and f.segmentation is not None:
+                args = (f.points, f.segmentation, f.points_gt)
+            elif m == "mimo" and all(h is not None for h in f.heads):
+                args = (f.heads, f.head_variances, f.gt_objects)
+            else:
+                continue
+            r.frames_in += 1
+            rec = main.get(f.stamp_ns)
+            if rec is None:
+                continue
+            r.frames_out += 1
+            try:
+                if m == "lmd":
+                    got = lmd_rows(*args, rec)
+                elif m == "lms":
+                    got = lms_rows(*args, rec, lms_settings, separate=lms_separate)
+                else:
+                    got = mimo_rows(*args, rec, mimo_settings)
+            except Mismatch as e:
+                r.mismatched += 1
+                if len(r.mismatch_reasons) < 5:
+                    r.mismatch_reasons.append(f"stamp {f.stamp_ns}: {e}")
+                continue
+            r.add(f.stamp_ns, **{k: got[k] for k in ("tp", "iou", "confidence",
+                                                     "predicted_iou", "baseline")})
+            if f.index == example_frame:
+                ev.example[m] = {**got, "stamp_ns": f.stamp_ns, "frame": f.index,
+                                 "points": f.points}
+    bar.close()
+    return ev
