@@ -93,23 +93,11 @@ def _settings(cls, params: dict, **extra):
     return settings
 
 
-def mimo_settings(p: dict):
-    """``MimoSettings`` of mimo_node's parameters (``MimoNode._declare_settings``; the node
-    could share this function)."""
-    from mimo_ros.merging import MergeConfig
-    from mimo_ros.pipeline import MimoSettings
-
-    merge = MergeConfig(eps=p["eps"], voting=p["voting"],
-                        min_cluster_size=p["min_cluster_size"] or None,
-                        class_aware=p["class_aware"], score_type="probabilities",
-                        background_index=0, temperature=p["temperature"])
-    return _settings(MimoSettings, p, merge=merge)
-
-
 def node_settings(node: str, params: dict):
     """The pipeline settings a node builds from its parameters (``node_parameters``)."""
     if node == "mimo":
-        return mimo_settings(params)
+        from mimo_ros.pipeline import settings_from_parameters
+        return settings_from_parameters(params)
     if node == "lmd":
         from lmd_ros.pipeline import LmdSettings as cls
     else:
@@ -182,7 +170,7 @@ def _mimo(p: dict) -> Runner:
     from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
     from mimo_ros.pipeline import default_model_paths, process_frame
 
-    s = mimo_settings(p)
+    s = node_settings("mimo", p)
     models = _models("mimo", p, default_model_paths(s.use_points), s.feature_names())
     if p["output_scores"] not in ("confidence", "merged"):
         raise UsageError(f"mimo.output_scores must be confidence or merged, "

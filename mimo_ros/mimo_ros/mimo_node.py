@@ -48,9 +48,9 @@ from sensor_msgs.msg import PointCloud2
 from vision_msgs.msg import Detection3DArray
 from visualization_msgs.msg import MarkerArray
 
-from .merging import VOTING_RULES, MergeConfig
+from .merging import VOTING_RULES
 from .pipeline import (DEFAULT_CLASS_NAMES, InputLiveness, MimoSettings, default_model_paths,
-                       process_frame)
+                       process_frame, settings_from_parameters)
 
 
 class MimoNode(QualityNode):
@@ -131,13 +131,10 @@ class MimoNode(QualityNode):
         class_names = declare(self, "class_names", list(DEFAULT_CLASS_NAMES),
                               "Foreground class names of the heads' hypotheses, in the order "
                               "of the meta models' class feature.")
-        merge = MergeConfig(eps=eps, voting=voting, min_cluster_size=min_size or None,
-                            class_aware=class_aware, score_type="probabilities",
-                            background_index=0, temperature=temperature)
-        settings = MimoSettings(num_heads=num_heads, merge=merge, use_points=use_points,
-                                class_names=tuple(class_names))
-        settings.validate()
-        return settings
+        return settings_from_parameters(dict(
+            num_heads=num_heads, eps=eps, voting=voting, min_cluster_size=min_size,
+            class_aware=class_aware, temperature=temperature, use_points=use_points,
+            class_names=class_names))
 
     def _load_models(self) -> MetaModels:
         cpath = declare(self, "classifier_path", "",

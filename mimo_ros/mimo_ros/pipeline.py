@@ -95,6 +95,19 @@ class MimoSettings:
             raise ValueError(f"class_names has duplicates: {names!r}")
 
 
+def settings_from_parameters(p: dict) -> MimoSettings:
+    """``MimoSettings`` of mimo_node's parameters (names as in ``config/mimo_node.yaml``;
+    the offline tools build them the way the node does)."""
+    merge = MergeConfig(eps=p["eps"], voting=p["voting"],
+                        min_cluster_size=p["min_cluster_size"] or None,
+                        class_aware=p["class_aware"], score_type="probabilities",
+                        background_index=0, temperature=p["temperature"])
+    settings = MimoSettings(num_heads=p["num_heads"], merge=merge, use_points=p["use_points"],
+                            class_names=tuple(p["class_names"]))
+    settings.validate()
+    return settings
+
+
 def default_model_paths(use_points: bool = False) -> tuple[Path, Path]:
     """Shipped classifier and regressor: ``models_dir()/mimo/<prefix>_{classifier,
     regressor}.joblib`` with prefix ``mimo`` (cluster statistics) or ``mimo_points``."""
