@@ -172,7 +172,7 @@ def bev_values_png(path, xy, panels: Mapping[str, Sequence[float]], *, label: st
         ok = np.isfinite(v) & (np.abs(xy).max(axis=1) <= max_range)
         ax.scatter(xy[ok, 0], xy[ok, 1], c=v[ok], s=0.4, cmap=cmap, norm=norm, linewidths=0)
         ax.set_title(name, fontsize=10)
-    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=fig.axes, label=label, shrink=0.8)
+    fig.colorbar(cm.ScalarMappable(norm=norm, cmap=cmap), ax=fig.axes[-1], label=label)
     if title:
         fig.suptitle(title, fontsize=10)
     return save(fig, path)

@@ -10,7 +10,8 @@ publishing message objects took ~135 ms on the 2-core machine, the raw bytes ~10
 A looping player's /clock jumps back to the bag start at each pass, as with rosbag2.
 
     bag_player BAG [--topics T ...] [--rate 2] [--loop] [--start-offset S] [--delay S]
-               [--remap /old:=/new ...] [--best-effort [PATTERN ...]] [--ros-args ...]
+               [--remap /old:=/new ...] [--best-effort [PATTERN ...]] [--publish-log PATH]
+               [--ros-args ...]
 
 In-process (tests, ``make demo``): ``ros.start(BagPlayer, parameters={"bag": path, ...})``,
 then ``player.finished.wait()`` and ``player.summary()``.
@@ -230,6 +231,9 @@ class BagPlayer(Node):
                                      "[s]; then play anyway (with a warning).", min_value=0.0)
         prefetch_mb = declare(self, "prefetch_mb", 128.0, "Megabytes of messages read ahead of "
                               "the schedule.", min_value=1.0)
+        publish_log = declare(self, "publish_log", "", "Write one line per published message "
+                              "to this file: bag topic, log time [ns], system time of the "
+                              "publish call [ns] (latency measurements; empty: none).")
 
         if not bag:
             raise ValueError("parameter 'bag' is empty: give the rosbag2 directory to play")
@@ -286,6 +290,7 @@ class BagPlayer(Node):
         self._last_clock: int | None = None
         self._next_tick = 0.0
         self._prefetch_bytes = int(prefetch_mb * 1e6)
+        self._plog = open(publish_log, "w", buffering=1 << 16) if publish_log else None
         self.get_logger().info(
             f"playing {path} ({len(self._pubs)} topics, {sum(counts)} messages, "
             f"{span / 1e9:.2f} s) at rate {self._rate}" + (", looping" if self._loop else ""))
@@ -322,6 +327,8 @@ class BagPlayer(Node):
                 start = time.monotonic()
                 if self._clock_pub is not None and msg.stamp_ns != self._last_clock:
                     self._publish_clock(msg.stamp_ns)
+                if self._plog is not None:
+                    self._plog.write(f"{msg.topic} {msg.stamp_ns} {time.time_ns()}\n")
                 self._pubs[msg.topic].publish(msg.raw)
                 self.stats.record(msg.topic, len(msg.raw), due, start, time.monotonic())
             if not self._stop.is_set():
@@ -333,6 +340,8 @@ class BagPlayer(Node):
             if reader is not None:
                 self._stop.set()
                 reader.close()
+            if self._plog is not None:
+                self._plog.close()
             if self.error is None:
                 self.get_logger().info(format_summary(self.summary()).splitlines()[1])
             self.finished.set()
@@ -466,6 +475,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wait-timeout", type=float, metavar="S", help="longest wait for subscribers")
     p.add_argument("--prefetch-mb", type=float, metavar="MB", help="read-ahead buffer (default 128)")
     p.add_argument("--summary-json", type=Path, metavar="PATH", help="also write the summary as JSON")
+    p.add_argument("--publish-log", type=Path, metavar="PATH",
+                   help="write 'topic log_ns publish_ns' per published message")
     return p
 
 
@@ -476,6 +487,7 @@ def cli_parameters(ns: argparse.Namespace) -> dict:
            "delay": ns.delay, "clock": ns.clock, "clock_rate": ns.clock_rate,
            "wait_for_subscribers": ns.wait_for_subscribers, "wait_timeout": ns.wait_timeout,
            "prefetch_mb": ns.prefetch_mb,
+           "publish_log": str(ns.publish_log) if ns.publish_log else None,
            "topics": " ".join(ns.topics) if ns.topics else None,
            "exclude_topics": " ".join(ns.exclude_topics) if ns.exclude_topics else None,
            "remap": " ".join(ns.remap) if ns.remap else None,

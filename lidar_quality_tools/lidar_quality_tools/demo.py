@@ -68,42 +68,35 @@ def wiring(num_heads: int = 2) -> dict:
 
 
 class Recorder:
-    """Raw subscriptions: the output topics written to a bag; for every (topic, stamp) the
-    middleware's timestamps, publication (source) and reception [ns, system clock], taken
+    """Raw subscriptions to the nodes' outputs, written to a bag (log time = header stamp),
+    with the middleware's reception time of each (topic, stamp) [ns, system clock]: taken
     when the sample arrived, not when this process got round to it."""
 
-    def __init__(self, node, bag_path: Path, record: dict[str, str], watch: dict[str, str]):
+    def __init__(self, node, bag_path: Path, record: dict[str, str]):
         from lidar_quality_ros.bag_io import BagWriter, message_class
-        from lidar_quality_ros.qos import SENSOR_QOS, output_qos
+        from lidar_quality_ros.qos import output_qos
 
         self.lock = threading.Lock()
-        self.times: dict[str, dict[int, tuple[int, int]]] = {t: {} for t in {**record, **watch}}
+        self.received: dict[str, dict[int, int]] = {t: {} for t in record}
         self.writer = BagWriter(bag_path)
         self.writer.__enter__()
         self.closed = False
-        self.subs = {}
         self._qos = output_qos(50)
-        for topic, msgtype in record.items():
-            self.subs[topic] = node.create_subscription(
-                message_class(msgtype), topic, partial(self._on, topic, msgtype), self._qos,
-                raw=True)
-        for topic, msgtype in watch.items():
-            self.subs[topic] = node.create_subscription(
-                message_class(msgtype), topic, partial(self._on, topic, None), SENSOR_QOS,
-                raw=True)
+        self.subs = {topic: node.create_subscription(
+            message_class(msgtype), topic, partial(self._on, topic, msgtype), self._qos, raw=True)
+            for topic, msgtype in record.items()}
 
-    def _on(self, topic: str, msgtype: str | None, data: bytes, info: dict) -> None:
+    def _on(self, topic: str, msgtype: str, data: bytes, info: dict) -> None:
         sec, nsec = _STAMP.unpack_from(data, 4)
         stamp = sec * _NS + nsec
         with self.lock:
-            self.times[topic].setdefault(stamp, (info["source_timestamp"],
-                                                 info["received_timestamp"]))
-            if msgtype is not None and not self.closed:
+            self.received[topic].setdefault(stamp, info["received_timestamp"])
+            if not self.closed:
                 self.writer.write(topic, msgtype, stamp, data, qos=[self._qos])
 
     def count(self, topic: str) -> int:
         with self.lock:
-            return len(self.times[topic])
+            return len(self.received[topic])
 
     def close(self) -> None:
         with self.lock:
@@ -112,19 +105,31 @@ class Recorder:
                 self.writer.__exit__(None, None, None)
 
 
+def publish_times(bag: Path, log: Path) -> dict[str, dict[int, int]]:
+    """topic -> header stamp -> system time [ns] of the player's publish call, from its
+    ``--publish-log`` (bag topic, log time) and the bag (log time -> header stamp)."""
+    from lidar_quality_ros.bag_io import read_bag
+
+    rows = [line.split() for line in log.read_text().splitlines()]
+    wall = {(t, int(log_ns)): int(w) for t, log_ns, w in rows}
+    out: dict[str, dict[int, int]] = {}
+    for m in read_bag(bag, {t for t, _ in wall}):
+        w = wall.get((m.topic, m.stamp_ns))
+        if w is not None:
+            sec, nsec = _STAMP.unpack_from(m.raw, 4)
+            out.setdefault(m.topic, {}).setdefault(sec * _NS + nsec, w)
+    return out
+
+
 def _pct(x, q):
     return round(float(np.percentile(x, q)), 2) if len(x) else None
 
 
-def latencies(rec: Recorder, inputs: list[str], output: str) -> np.ndarray:
-    """[ms] per output frame: reception of the output - publication of the frame's last
-    input (the bag player's publish calls)."""
-    with rec.lock:
-        outs = dict(rec.times[output])
-        ins = [dict(rec.times[t]) for t in inputs]
-    lat = [(recv - max(d[s][0] for d in ins)) / 1e6 for s, (_, recv) in outs.items()
-           if all(s in d for d in ins)]
-    return np.array(sorted(lat))
+def latencies(published: dict, inputs: list[str], received: dict[int, int]) -> np.ndarray:
+    """[ms] per output frame: its reception - the publication of the frame's last input."""
+    ins = [published.get(t, {}) for t in inputs]
+    return np.array(sorted((r - max(d[s] for d in ins)) / 1e6 for s, r in received.items()
+                           if all(s in d for d in ins)))
 
 
 def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
@@ -146,7 +151,7 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
         raise SystemExit(f"demo: {bag} lacks {missing}: not a perception bag "
                          "(reference_perception.cli bag / split)")
     record = {f"/{n}/{rel}": typ for n, outs in OUTPUTS.items() for rel, typ in outs}
-    watch = {t: info.topics[t].msgtype for t in played}
+    users = {t: sum(t in r.values() for _, r in wire.values()) for t in played}
     live: dict = {"nodes": {}}
     with RosHarness() as ros:
         say(f"demo: ROS domain {ros.domain_id} (loopback only); starting lmd_node, lms_node, "
@@ -159,20 +164,26 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
                                         extra_env={"PYTHONFAULTHANDLER": "1"})
         diag = DiagnosticsLog()
         ros.node.create_subscription(DiagnosticArray, "/diagnostics", diag, output_qos(50))
-        rec = Recorder(ros.node, out / "outputs", record, watch)
+        rec = Recorder(ros.node, out / "outputs", record)
         try:
+            deadline = time.monotonic() + 120.0
+            while any(ros.node.count_subscribers(t) < n for t, n in users.items()):
+                if time.monotonic() > deadline or any(p.poll() is not None for p in procs.values()):
+                    raise RuntimeError(f"the nodes did not subscribe to {played} (exit codes "
+                                       f"{ {n: p.poll() for n, p in procs.items()} }; logs in "
+                                       f"{logs})")
+                time.sleep(0.1)
             for topic, sub in rec.subs.items():
-                if topic in record and not ros.wait_for_match(sub, timeout=120.0):
+                if not ros.wait_for_match(sub, timeout=120.0):
                     dead = {n: p.poll() for n, p in procs.items() if p.poll() is not None}
                     raise RuntimeError(f"no publisher of {topic} after 120 s (exited: {dead}; "
                                        f"logs in {logs})")
             player_json = out / "player.json"
             from ament_index_python.packages import get_package_prefix
             exe = Path(get_package_prefix("lidar_quality_ros")) / "lib" / "lidar_quality_ros" / "bag_player"
-            # every played topic: its node and the recorder subscribed before the first message
             argv = [str(exe), str(bag), "--topics", *played, "--rate", str(rate),
-                    "--wait-for-subscribers", "2", "--wait-timeout", "60",
-                    "--summary-json", str(player_json)]
+                    "--wait-for-subscribers", "1", "--wait-timeout", "60",
+                    "--summary-json", str(player_json), "--publish-log", str(logs / "published.txt")]
             say(f"demo: replaying {bag} ({info.topics['/lidar/points'].count} frames, "
                 f"{len(played)} topics) at rate {rate:g} with /clock")
             t0 = time.monotonic()
@@ -211,10 +222,11 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
                     codes[n] = "killed (no exit 30 s after SIGINT)"
             rec.close()
     published = {t: v["count"] for t, v in live["player"]["topics"].items()}
+    pub_times = publish_times(bag, logs / "published.txt")
     for name, (_, remaps) in wire.items():
         inputs = list(remaps.values())
         main = f"/{name}/{OUTPUTS[name][0][0]}"
-        lat = latencies(rec, inputs, main)
+        lat = latencies(pub_times, inputs, rec.received[main])
         frames_in = min(published.get(t, 0) for t in inputs)
         frames_out = rec.count(main)
         live["nodes"][name] = {
@@ -262,8 +274,8 @@ def write_report(out: Path, summary: dict, ev, live: dict) -> list[Path]:
         xyz, _ = xyz_intensity(ex["points"])
         figs.append(rp.bev_boxes_png(
             out / "lmd_bev_frame.png", xyz[:, :2], ex["boxes"], ex["confidence"],
-            gt_boxes=ex["gt_boxes"], title=f"LMD, frame {ex['frame']}: detections coloured by "
-                                           "meta confidence (dashed: ground truth)"))
+            gt_boxes=ex["gt_boxes"], title=f"LMD, frame {ex['frame']}: boxes by meta confidence\n"
+                                           "(dashed: ground truth)"))
     ex = ev.example.get("lms")
     if ex is not None:
         res, inp = ex["result"], ex["input"]
@@ -299,15 +311,16 @@ def report_markdown(summary: dict, figs: list[Path]) -> str:
          "", "## Frames and latency", "",
          markdown_table(["node", "frames in", "frames out", "dropped", "latency p50 [ms]",
                          "latency p99 [ms]", "exit"],
-                        [[n, v["frames_in"], v["frames_out"], v["dropped"], v["latency_ms_p50"],
-                          v["latency_ms_p99"], v["exit_code"]] for n, v in s["nodes"].items()],
+                        [[n, str(v["frames_in"]), str(v["frames_out"]), str(v["dropped"]),
+                          v["latency_ms_p50"], v["latency_ms_p99"], str(v["exit_code"])]
+                         for n, v in s["nodes"].items()],
                         digits=1),
          "Latency: from the publication of a frame's last input (bag player) to the "
          "reception of the node's output (recorder), by the middleware's timestamps.", "",
          "## Quality of the recorded estimates", "",
          markdown_table(["node", "rows", "AUROC", "AUROC baseline", "ECE", "ECE baseline", "R²",
                          "baseline"],
-                        [[n, v["n"], v["auroc"], v["auroc_baseline"], v["ece"], v["ece_baseline"],
+                        [[n, str(v["n"]), v["auroc"], v["auroc_baseline"], v["ece"], v["ece_baseline"],
                           v["r2"], BASELINES[n]] for n, v in s["nodes"].items()]),
          "Rows: LMD detections, LMS segments with a defined IoU_adj, MIMO merged boxes. "
          "True positive: LMD BEV IoU >= 0.5 with any ground-truth box; MIMO with one of "

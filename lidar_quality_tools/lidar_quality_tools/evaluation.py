@@ -21,6 +21,9 @@ counted as ``mismatched`` and left out, so a wrong output cannot pass for a righ
 """
 from __future__ import annotations
 
+import argparse
+import json
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -256,3 +259,37 @@ def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=
                                  "points": f.points}
     bar.close()
     return ev
+
+
+def main(argv=None) -> int:
+    """``python -m lidar_quality_tools.evaluation --bag PERCEPTION_BAG [--outputs BAG]``:
+    the quality of recorded (or ``process_bag``-annotated) outputs, as JSON on stdout."""
+    from .process import node_parameters, node_settings
+
+    ap = argparse.ArgumentParser(description=main.__doc__.split("\n")[0])
+    ap.add_argument("--bag", type=Path, required=True, help="perception bag with ground truth")
+    ap.add_argument("--outputs", type=Path, default=None,
+                    help="bag of the nodes' outputs (default: in --bag, as process_bag writes)")
+    ap.add_argument("--param", action="append", default=[], metavar="NODE.NAME=VALUE",
+                    help="the node parameters the outputs were made with (lms, mimo)")
+    a = ap.parse_args(argv)
+    import yaml
+    over: dict = {"lms": {}, "mimo": {}}
+    for item in a.param:
+        key, _, value = item.partition("=")
+        node, _, name = key.partition(".")
+        if node not in over or not name or not _:
+            ap.error(f"--param {item!r}: expected lms.NAME=VALUE or mimo.NAME=VALUE")
+        over[node][name] = yaml.safe_load(value)
+    lms_p = node_parameters("lms", over["lms"])
+    ev = evaluate(a.bag, a.outputs, lms_settings=node_settings("lms", lms_p),
+                  mimo_settings=node_settings("mimo", node_parameters("mimo", over["mimo"])),
+                  lms_separate=bool(lms_p["separate_probabilities"]), progress=True)
+    from lidar_quality_core.jsonable import jsonable
+    json.dump(jsonable(ev.quality()), sys.stdout, indent=1)
+    print()
+    return 1 if any(r.mismatched for r in ev.rows.values()) else 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -230,6 +230,23 @@ def test_python_module_plays_to_the_end_with_ros_args(ros, tmp_path):
     assert "/via_ros_args" in out and "achieved rate" in out and "Traceback" not in out
 
 
+def test_publish_log_has_every_message_with_its_publish_time(ros, tmp_path):
+    sent = make_bag(tmp_path / "b")
+    cols = collectors(ros, sent)
+    log = tmp_path / "published.txt"
+    before = time.time_ns()
+    play(ros, tmp_path / "b", publish_log=str(log))
+    after = time.time_ns()
+    rows = [line.split() for line in log.read_text().splitlines()]
+    assert [(t, int(ns)) for t, ns, _ in rows] == sorted(
+        ((t, stamp) for t, ms in sent.items() for stamp, _ in ms), key=lambda r: r[1])
+    wall = np.array([int(w) for *_, w in rows])
+    assert before < wall[0] and np.all(np.diff(wall) >= 0) and wall[-1] < after
+    # never ahead of the recorded schedule (late, on a loaded machine, is possible)
+    assert wall[-1] - wall[0] >= int(rows[-1][1]) - int(rows[0][1]) - 1e6
+    assert all(c.wait_for(len(sent[t]), timeout=10.0) for t, c in cols.items())
+
+
 def test_missing_bag_exits_nonzero_with_a_clear_message(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "lidar_quality_ros.bag_player", str(tmp_path / "nope")],
                           capture_output=True, text=True, timeout=60)

@@ -118,3 +118,16 @@ def test_quality_figures():
                   predicted_iou=np.ones(3), baseline=np.ones(3))
     assert one_class.quality()["auroc"] is None  # undefined with one outcome only
     assert MethodRows("lms").quality()["n"] == 0
+
+
+def test_cli_scores_an_annotated_bag(bag, annotated, capsys):
+    import json
+
+    from lidar_quality_tools.evaluation import main
+
+    assert main(["--bag", str(bag), "--outputs", str(annotated),
+                 "--param", "lms.separate_probabilities=true"]) == 0
+    q = json.loads(capsys.readouterr().out)
+    assert {m: q[m]["frames_out"] for m in q} == dict.fromkeys(("lmd", "lms", "mimo"), N_FRAMES)
+    with pytest.raises(SystemExit):
+        main(["--bag", str(bag), "--param", "lmd_bad"])
