@@ -243,7 +243,7 @@ class LoadTest:
             self.say("load test: warning: FASTRTPS_DEFAULT_PROFILES_FILE is not set (run "
                      "through scripts/with_env.sh): large clouds between processes get lost "
                      "without the shared-memory profile")
-        self.ros = ros = RosHarness()
+        self.ros = ros = RosHarness(num_threads=1)  # the publisher's GIL: cheap callbacks
         try:
             for name in self.names:
                 argv, params = node_command(name, params=self.extra_params.get(name, {}))

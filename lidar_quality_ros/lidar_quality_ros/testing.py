@@ -22,7 +22,8 @@ from typing import Any
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
+                             SingleThreadedExecutor)
 from rclpy.parameter import Parameter
 
 from .domain import DomainLease
@@ -62,7 +63,10 @@ class RosHarness:
         self.domain_id = self.lease.domain_id
         self.context = Context()
         rclpy.init(context=self.context, domain_id=self.domain_id)
-        self.executor = MultiThreadedExecutor(num_threads=num_threads, context=self.context)
+        # num_threads=1: a SingleThreadedExecutor, far cheaper per callback (load tests,
+        # the demo's recorder); 2 lets an in-process node under test wait in a callback.
+        self.executor = (SingleThreadedExecutor(context=self.context) if num_threads <= 1 else
+                         MultiThreadedExecutor(num_threads=num_threads, context=self.context))
         self.node = rclpy.create_node(f"lq_test_harness_{os.getpid()}", context=self.context)
         self.executor.add_node(self.node)
         self._nodes = [self.node]

@@ -153,7 +153,7 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
     record = {f"/{n}/{rel}": typ for n, outs in OUTPUTS.items() for rel, typ in outs}
     users = {t: sum(t in r.values() for _, r in wire.values()) for t in played}
     live: dict = {"nodes": {}}
-    with RosHarness() as ros:
+    with RosHarness(num_threads=1) as ros:
         say(f"demo: ROS domain {ros.domain_id} (loopback only); starting lmd_node, lms_node, "
             "mimo_node")
         procs, params = {}, {}
