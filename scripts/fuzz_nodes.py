@@ -50,14 +50,6 @@ NODES = {
 CLASS_PARAM = "class_names"
 
 
-def config_parameters(package: str, node_name: str) -> dict:
-    """``ros__parameters`` of the installed ``config/<node>.yaml``."""
-    import yaml
-    from ament_index_python.packages import get_package_share_directory
-    path = Path(get_package_share_directory(package)) / "config" / f"{node_name}.yaml"
-    return dict(yaml.safe_load(path.read_text())["/**"]["ros__parameters"])
-
-
 # ---------------------------------------------------------------------------- node I/O
 def input_specs(node, name: str):
     """InputSpecs of the node's synchronised inputs, from its subscriptions."""
@@ -243,6 +235,7 @@ def settle(node, counters: Counters, before: dict, n_msgs: int, heavy: bool, sta
 def fuzz_node(name: str, cases: int, seed: int, extra: dict, huge_clouds: int,
               box_floods: int | None) -> dict:
     from lidar_quality_ros import fuzz
+    from lidar_quality_ros.params import config_parameters
     from lidar_quality_ros.qos import output_qos
     from lidar_quality_ros.testing import RosHarness
 

@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import bisect
 import operator
+import struct
 import threading
 from dataclasses import dataclass, field
 from typing import Any, Callable, NamedTuple, Sequence
@@ -52,6 +53,7 @@ __all__ = [
     "NS_PER_SEC",
     "stamp_to_ns",
     "ns_to_stamp",
+    "stamp_of_bytes",
     "SyncedSet",
     "SyncStats",
     "StampSynchronizer",
@@ -72,6 +74,19 @@ def stamp_to_ns(sec: int, nanosec: int) -> int:
 def ns_to_stamp(stamp_ns: int) -> tuple[int, int]:
     """Inverse of :func:`stamp_to_ns`: ``(sec, nanosec)`` with ``0 <= nanosec < 1e9``."""
     return divmod(operator.index(stamp_ns), NS_PER_SEC)
+
+
+#: A serialized ROS message starts with the CDR encapsulation (4 bytes); a leading
+#: std_msgs/Header then puts stamp.sec (int32) and stamp.nanosec (uint32) at bytes 4..12.
+HEADER_STAMP = struct.Struct("<iI")
+
+
+def stamp_of_bytes(data) -> int:
+    """Header stamp [ns] of the little-endian CDR bytes of a message with a leading
+    header, read without deserializing it; ``ValueError`` for other bytes."""
+    if len(data) < 12 or bytes(data[:2]) != b"\x00\x01":
+        raise ValueError("not little-endian CDR of a message with a header")
+    return stamp_to_ns(*HEADER_STAMP.unpack_from(data, 4))
 
 
 class SyncedSet(NamedTuple):

@@ -36,7 +36,6 @@ import gc
 import importlib
 import os
 import signal
-import struct
 import subprocess
 import threading
 import time
@@ -45,13 +44,12 @@ from pathlib import Path
 from typing import Callable, Sequence
 
 import numpy as np
+from lidar_quality_core.time_sync import HEADER_STAMP, stamp_of_bytes
 
 #: node -> (package, main output topic (relative) whose messages count as "received")
 NODES = {"lmd": ("lmd_ros", "output/detections"),
          "lms": ("lms_ros", "output/segments"),
          "mimo": ("mimo_ros", "output/detections")}
-#: Stamp of a serialized message with a leading header (see ``fuzz.restamp_bytes``).
-_STAMP = struct.Struct("<iI")
 _NS = 1_000_000_000
 
 
@@ -100,7 +98,8 @@ def memory_growth(t: np.ndarray, kb: np.ndarray, warmup_s: float, window_s: floa
             "slope_mb_per_min": round(float(slope), 3)}
 
 
-def _percentile(x, q) -> float | None:
+def percentile(x, q) -> float | None:
+    """The q-th percentile of x rounded to 0.01, None for no sample."""
     return round(float(np.percentile(x, q)), 2) if len(x) else None
 
 
@@ -116,8 +115,7 @@ class OutputLog:
 
     def __call__(self, data: bytes) -> None:
         now = time.monotonic()
-        sec, nsec = _STAMP.unpack_from(data, 4)
-        key = sec * _NS + nsec
+        key = stamp_of_bytes(data)
         with self._lock:
             if key in self.received:
                 self.duplicates += 1
@@ -163,12 +161,13 @@ def node_command(name: str, *, params: dict | None = None, remaps: dict | None =
     with its installed ``config/<name>_node.yaml``, in namespace ``/<name>`` (default),
     then ``-p`` overrides and ``-r`` remaps; ``parameters`` as the node will read them."""
     import yaml
-    from ament_index_python.packages import get_package_prefix, get_package_share_directory
+    from ament_index_python.packages import get_package_prefix
+    from lidar_quality_ros.params import config_file, config_parameters
 
     package = NODES[name][0]
     exe = Path(get_package_prefix(package)) / "lib" / package / f"{name}_node"
-    cfg = Path(get_package_share_directory(package)) / "config" / f"{name}_node.yaml"
-    values = dict(yaml.safe_load(cfg.read_text())["/**"]["ros__parameters"])
+    cfg = config_file(package, f"{name}_node")
+    values = config_parameters(package, f"{name}_node")
     argv = [str(exe), "--ros-args", "--params-file", str(cfg),
             "-r", f"__ns:={namespace or '/' + name}"]
     for k, v in (params or {}).items():
@@ -351,7 +350,7 @@ class LoadTest:
             frame = self.nodes[n].frames[self._k % self.n_frames]
             t0 = time.monotonic()
             for pub, buf in frame:
-                _STAMP.pack_into(buf, 4, sec, nsec)
+                HEADER_STAMP.pack_into(buf, 4, sec, nsec)
                 pub.publish(bytes(buf))
             times[n] = (t0, time.monotonic())
         self._k += 1
@@ -464,7 +463,7 @@ class LoadTest:
                   "achieved_rate_hz": round((n_total - 1) / publish_s, 2) if publish_s > 0
                   and n_total > 1 else None,
                   "late_ticks": late, "schedule_resets": resets,
-                  "tick_lag_ms_p99": _percentile(lag_ms, 99),
+                  "tick_lag_ms_p99": percentile(lag_ms, 99),
                   "tick_lag_ms_max": round(max(lag_ms), 2) if lag_ms else None,
                   "warmup_s": warmup, "memory_window_s": window,
                   "nodes": {}}
@@ -489,10 +488,10 @@ class LoadTest:
                 "dropped": len(sent[n]) - len(got),
                 "unexpected_outputs": strangers,
                 "duplicates": node.output.duplicates - dup_before[n],
-                "latency_ms_p50": _percentile(lat, 50), "latency_ms_p99": _percentile(lat, 99),
+                "latency_ms_p50": percentile(lat, 50), "latency_ms_p99": percentile(lat, 99),
                 "latency_ms_max": round(float(lat.max()), 2) if len(lat) else None,
-                "publish_ms_p50": _percentile(pub_ms[n], 50),
-                "publish_ms_p99": _percentile(pub_ms[n], 99),
+                "publish_ms_p50": percentile(pub_ms[n], 50),
+                "publish_ms_p99": percentile(pub_ms[n], 99),
                 "diag_frames_out": delta("frames_out"), "diag_dropped": delta("dropped"),
                 "diag_dropped_reasons": {k: delta(k) for k in values
                                          if k.startswith("dropped.") and delta(k)},

@@ -1,6 +1,7 @@
 """Parameter declaration with mandatory descriptions."""
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Any
 
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
@@ -39,3 +40,18 @@ def declare(node, name: str, default: Any, description: str, *, read_only: bool 
     if min_value is not None and value < min_value or max_value is not None and value > max_value:
         raise ValueError(f"parameter {name!r} = {value!r}: outside [{min_value}, {max_value}]")
     return value
+
+
+def config_file(package: str, node_name: str) -> Path:
+    """The installed parameter file ``share/<package>/config/<node_name>.yaml``."""
+    from ament_index_python.packages import get_package_share_directory
+
+    return Path(get_package_share_directory(package)) / "config" / f"{node_name}.yaml"
+
+
+def config_parameters(package: str, node_name: str) -> dict:
+    """The ``ros__parameters`` of :func:`config_file` (the node's shipped defaults)."""
+    import yaml
+
+    return dict(yaml.safe_load(config_file(package, node_name).read_text())["/**"]
+                ["ros__parameters"])

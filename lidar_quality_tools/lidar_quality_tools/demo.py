@@ -24,7 +24,6 @@ import argparse
 import json
 import os
 import signal
-import struct
 import subprocess
 import sys
 import threading
@@ -33,21 +32,9 @@ from functools import partial
 from pathlib import Path
 
 import numpy as np
+from lidar_quality_core.time_sync import stamp_of_bytes
 
 DEFAULT_DATA = Path("data/perception/demo")
-_STAMP = struct.Struct("<iI")  # header stamp after the 4-byte CDR encapsulation
-_NS = 1_000_000_000
-
-#: node -> recorded outputs (relative name, type); the first is its main output
-OUTPUTS = {
-    "lmd": [("output/detections", "vision_msgs/msg/Detection3DArray"),
-            ("output/quality", "lidar_quality_msgs/msg/DetectionQualityArray")],
-    "lms": [("output/segments", "lidar_quality_msgs/msg/SegmentQualityArray"),
-            ("output/points", "sensor_msgs/msg/PointCloud2")],
-    "mimo": [("output/detections", "vision_msgs/msg/Detection3DArray"),
-             ("output/uncertainty", "lidar_quality_msgs/msg/ClusterUncertaintyArray")],
-}
-
 
 def wiring(num_heads: int = 2) -> dict:
     """node -> (parameter overrides, remaps input -> bag topic)."""
@@ -87,8 +74,7 @@ class Recorder:
             for topic, msgtype in record.items()}
 
     def _on(self, topic: str, msgtype: str, data: bytes, info: dict) -> None:
-        sec, nsec = _STAMP.unpack_from(data, 4)
-        stamp = sec * _NS + nsec
+        stamp = stamp_of_bytes(data)
         with self.lock:
             self.received[topic].setdefault(stamp, info["received_timestamp"])
             if not self.closed:
@@ -116,13 +102,8 @@ def publish_times(bag: Path, log: Path) -> dict[str, dict[int, int]]:
     for m in read_bag(bag, {t for t, _ in wall}):
         w = wall.get((m.topic, m.stamp_ns))
         if w is not None:
-            sec, nsec = _STAMP.unpack_from(m.raw, 4)
-            out.setdefault(m.topic, {}).setdefault(sec * _NS + nsec, w)
+            out.setdefault(m.topic, {}).setdefault(stamp_of_bytes(m.raw), w)
     return out
-
-
-def _pct(x, q):
-    return round(float(np.percentile(x, q)), 2) if len(x) else None
 
 
 #: Frames at the start of the replay left out of the steady-state latency (one-time costs
@@ -142,7 +123,7 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
     """Steps 2-3: start the nodes, replay ``bag``, record. Returns the live figures."""
     from diagnostic_msgs.msg import DiagnosticArray
     from lidar_quality_ros.bag_io import bag_info
-    from lidar_quality_ros.load_test import DiagnosticsLog, node_command
+    from lidar_quality_ros.load_test import NODES, DiagnosticsLog, node_command, percentile
     from lidar_quality_ros.perception_bag import head_count
     from lidar_quality_ros.qos import output_qos
     from lidar_quality_ros.testing import RosHarness
@@ -156,7 +137,9 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
     if missing:
         raise SystemExit(f"demo: {bag} lacks {missing}: not a perception bag "
                          "(reference_perception.cli bag / split)")
-    record = {f"/{n}/{rel}": typ for n, outs in OUTPUTS.items() for rel, typ in outs}
+    from .process import OUTPUTS  # what the nodes publish (process_bag writes the same)
+
+    record = {topic: typ for outs in OUTPUTS.values() for topic, typ in outs}
     users = {t: sum(t in r.values() for _, r in wire.values()) for t in played}
     live: dict = {"nodes": {}}
     with RosHarness(num_threads=1) as ros:
@@ -195,7 +178,7 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
             t0 = time.monotonic()
             with open(logs / "bag_player.log", "w") as fh:
                 player = ros.spawn(argv, stdout=fh, stderr=subprocess.STDOUT)
-            duration = (info.end_ns - info.start_ns) / _NS
+            duration = (info.end_ns - info.start_ns) / 1e9
             try:
                 player.wait(timeout=120 + 3 * duration / rate)
             except subprocess.TimeoutExpired:
@@ -231,17 +214,17 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
     pub_times = publish_times(bag, logs / "published.txt")
     for name, (_, remaps) in wire.items():
         inputs = list(remaps.values())
-        main = f"/{name}/{OUTPUTS[name][0][0]}"
+        main = f"/{name}/{NODES[name][1]}"  # the node's main output
         lat = latencies(pub_times, inputs, rec.received[main])
         frames_in = min(published.get(t, 0) for t in inputs)
         frames_out = rec.count(main)
         live["nodes"][name] = {
             "frames_in": frames_in, "frames_out": frames_out,
             "dropped": frames_in - frames_out,
-            "latency_ms_p50": _pct(lat, 50), "latency_ms_p99": _pct(lat, 99),
+            "latency_ms_p50": percentile(lat, 50), "latency_ms_p99": percentile(lat, 99),
             "latency_ms_max": round(float(lat.max()), 2) if len(lat) else None,
             # after the first WARMUP_FRAMES frames
-            "latency_ms_p99_steady": _pct(lat[WARMUP_FRAMES:], 99),
+            "latency_ms_p99_steady": percentile(lat[WARMUP_FRAMES:], 99),
             "latency_ms_first_frames": [round(float(x), 1) for x in lat[:WARMUP_FRAMES]],
             "node_diagnostics": {k: v for k, v in diag_values[name].items()
                                  if k.startswith(("dropped", "frames", "latency"))},

@@ -31,16 +31,16 @@ import numpy as np
 
 from lidar_quality_core import metrics
 
-#: method -> output topics (namespaced as the demo and ``process_bag`` run the nodes)
-OUTPUT_TOPICS = {
-    "lmd": {"quality": "/lmd/output/quality", "detections": "/lmd/output/detections"},
-    "lms": {"segments": "/lms/output/segments"},
-    "mimo": {"uncertainty": "/mimo/output/uncertainty", "detections": "/mimo/output/detections"},
-}
+#: method -> the output topic with its estimates (namespaced as the demo and
+#: ``process_bag`` run the nodes)
+OUTPUT_TOPICS = {"lmd": "/lmd/output/quality", "lms": "/lms/output/segments",
+                 "mimo": "/mimo/output/uncertainty"}
 METHODS = tuple(OUTPUT_TOPICS)
 BASELINES = {"lmd": "detector score", "lms": "mean softmax probability",
              "mimo": "merged score"}
 TP_IOU = 0.5
+#: per-row columns of every method
+COLUMNS = ("tp", "iou", "confidence", "predicted_iou", "baseline")
 
 
 class Mismatch(ValueError):
@@ -56,18 +56,16 @@ class MethodRows:
     frames_out: int = 0       # of which with a recorded output
     mismatched: int = 0       # recorded outputs that do not match their input (left out)
     mismatch_reasons: list = field(default_factory=list)
-    parts: dict = field(default_factory=lambda: {k: [] for k in (
-        "stamp", "tp", "iou", "confidence", "predicted_iou", "baseline")})
+    parts: dict = field(default_factory=lambda: {k: [] for k in COLUMNS})
 
-    def add(self, stamp_ns: int, **cols) -> None:
+    def add(self, **cols) -> None:
         n = len(cols["confidence"])
-        self.parts["stamp"].append(np.full(n, stamp_ns, np.int64))
         for k, v in cols.items():
             self.parts[k].append(np.asarray(v, np.float64).reshape(n))
 
     def column(self, key: str) -> np.ndarray:
         p = self.parts[key]
-        return np.concatenate(p) if p else np.zeros(0, np.int64 if key == "stamp" else float)
+        return np.concatenate(p) if p else np.zeros(0)
 
     def quality(self, n_bins: int = 10) -> dict:
         """AUROC / ECE of the confidence and of the baseline, R² of the predicted IoU."""
@@ -170,16 +168,17 @@ def mimo_rows(head_msgs, variance_msgs, gt_msg, uncertainty_msg, settings) -> di
 
 # ------------------------------------------------------------------ bags
 def read_outputs(bag: Path | str, methods=METHODS) -> dict[str, dict[int, object]]:
-    """Recorded output messages by topic and header stamp [ns] (lms points left out)."""
+    """The recorded estimates of ``methods``: their ``OUTPUT_TOPICS`` messages by topic
+    and header stamp [ns]."""
+    from lidar_quality_core.time_sync import stamp_to_ns
     from lidar_quality_ros.bag_io import bag_topics, read_bag
 
     present = bag_topics(bag)
-    topics = {t for m in methods for t in OUTPUT_TOPICS[m].values() if t in present}
+    topics = {OUTPUT_TOPICS[m] for m in methods if OUTPUT_TOPICS[m] in present}
     out: dict[str, dict[int, object]] = {t: {} for t in topics}
     for m in read_bag(bag, topics=topics):
         msg = m.decode()
-        st = msg.header.stamp
-        out[m.topic][st.sec * 1_000_000_000 + st.nanosec] = msg
+        out[m.topic][stamp_to_ns(msg.header.stamp.sec, msg.header.stamp.nanosec)] = msg
     return out
 
 
@@ -225,8 +224,6 @@ def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=
             continue  # no targets without ground truth
         for m in methods:
             r = rows[m]
-            topics = OUTPUT_TOPICS[m]
-            main = outs.get(next(iter(topics.values())), {})
             if m == "lmd" and f.detections is not None:
                 args = (f.detections, f.gt_objects)
             elif m == "lms" and f.segmentation is not None:
@@ -236,7 +233,7 @@ def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=
             else:
                 continue
             r.frames_in += 1
-            rec = main.get(f.stamp_ns)
+            rec = outs.get(OUTPUT_TOPICS[m], {}).get(f.stamp_ns)
             if rec is None:
                 continue
             r.frames_out += 1
@@ -252,8 +249,7 @@ def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=
                 if len(r.mismatch_reasons) < 5:
                     r.mismatch_reasons.append(f"stamp {f.stamp_ns}: {e}")
                 continue
-            r.add(f.stamp_ns, **{k: got[k] for k in ("tp", "iou", "confidence",
-                                                     "predicted_iou", "baseline")})
+            r.add(**{k: got[k] for k in COLUMNS})
             if f.index == example_frame:
                 ev.example[m] = {**got, "stamp_ns": f.stamp_ns, "frame": f.index,
                                  "points": f.points}

@@ -24,7 +24,6 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import shutil
-import struct
 import sys
 import time
 from collections import Counter
@@ -32,7 +31,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
-from lidar_quality_core.time_sync import stamp_to_ns
+from lidar_quality_core.time_sync import stamp_of_bytes
 from lidar_quality_ros.perception_bag import (DEFAULT_TOPICS, HEAD_TOPIC, HEAD_VARIANCE_TOPIC,
                                               resolve_bags)
 
@@ -64,11 +63,9 @@ class Drop(Exception):
 def node_parameters(node: str, overrides: dict | None = None) -> dict:
     """``ros__parameters`` of the node's installed config YAML with ``overrides`` applied
     (unknown names and values of another type than the YAML's raise ``UsageError``)."""
-    import yaml
-    from ament_index_python.packages import get_package_share_directory
+    from lidar_quality_ros.params import config_parameters
 
-    cfg = Path(get_package_share_directory(NODES[node])) / "config" / f"{node}_node.yaml"
-    params = dict(yaml.safe_load(cfg.read_text())["/**"]["ros__parameters"])
+    params = config_parameters(NODES[node], f"{node}_node")
     for name, value in (overrides or {}).items():
         if name not in params:
             raise UsageError(f"unknown parameter {node}.{name} (known: {', '.join(params)})")
@@ -247,16 +244,6 @@ def build_runners(nodes=tuple(NODES), params: dict | None = None) -> list[Runner
 
 
 # ----------------------------------------------------------------------- one bag
-_STAMP = struct.Struct("<iI")
-
-
-def _stamp_ns(raw: bytes) -> int:
-    """Header stamp of serialized little-endian CDR bytes of a message with a header."""
-    if len(raw) < 12 or raw[:2] != b"\x00\x01":
-        raise ValueError("not little-endian CDR of a message with a header")
-    return stamp_to_ns(*_STAMP.unpack_from(raw, 4))
-
-
 @dataclass
 class _Frame:
     stamp_ns: int
@@ -417,8 +404,8 @@ def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
             backlog.append(m)
             if m.topic in wanted:
                 try:
-                    stamp = _stamp_ns(m.raw)
-                except (ValueError, struct.error) as exc:
+                    stamp = stamp_of_bytes(m.raw)
+                except ValueError as exc:
                     stamp = exc
                 if isinstance(stamp, Exception) or (last_done is not None and stamp <= last_done):
                     why = "unreadable_stamp" if isinstance(stamp, Exception) else "late"

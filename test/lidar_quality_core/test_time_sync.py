@@ -451,3 +451,15 @@ def test_add_and_dispatch_uses_registered_callback_outside_lock():
     assert got == [("m",)]
     with pytest.raises(ValueError):
         StampSynchronizer(1).add_and_dispatch(0, 1, "m")
+
+
+def test_stamp_of_bytes_reads_the_header_stamp_and_refuses_other_bytes():
+    import pytest
+    from lidar_quality_core.time_sync import HEADER_STAMP, stamp_of_bytes
+
+    raw = bytearray(b"\x00\x01\x00\x00" + bytes(12))
+    HEADER_STAMP.pack_into(raw, 4, 1234, 5)
+    assert stamp_of_bytes(raw) == stamp_of_bytes(bytes(raw)) == 1234 * 10**9 + 5
+    for bad in (bytes(raw[:11]), b"\x01\x00" + bytes(raw[2:]), b""):
+        with pytest.raises(ValueError):
+            stamp_of_bytes(bad)

@@ -8,7 +8,7 @@ import sys
 
 import pytest
 from lidar_quality_ros.bag_io import bag_info
-from lidar_quality_tools.demo import OUTPUTS
+from lidar_quality_ros.load_test import NODES
 from perception_bags import simulated_perception_bags
 from reference_perception.cli import Perception
 
@@ -43,8 +43,8 @@ def test_demo_end_to_end(bags, tmp_path):
         assert node in r.stdout
     # every main output recorded once per processed frame, with the input's stamps
     info = bag_info(out / "outputs")
-    for node, outs in OUTPUTS.items():
-        assert info.topics[f"/{node}/{outs[0][0]}"].count == s["nodes"][node]["frames_out"]
+    for node, (_, main) in NODES.items():
+        assert info.topics[f"/{node}/{main}"].count == s["nodes"][node]["frames_out"]
     for png in ("lmd_reliability", "lms_iou_scatter", "mimo_reliability", "lmd_bev_frame",
                 "lms_segmentation_frame", "latency"):
         assert (out / f"{png}.png").stat().st_size > 1000, png

@@ -58,7 +58,7 @@ def test_every_frame_joined_with_its_targets(bag, annotated):
     n_valid = sum(int(detections_to_arrays(f.detections).valid.sum())
                   for f in perception_frames(bag, want=("detections",)))
     assert len(ev.rows["lmd"].column("confidence")) == n_valid
-    recorded = [x.confidence for m in read_bag(annotated, {OUTPUT_TOPICS["lmd"]["quality"]})
+    recorded = [x.confidence for m in read_bag(annotated, {OUTPUT_TOPICS["lmd"]})
                 for x in m.decode().detections]
     assert np.allclose(np.sort(ev.rows["lmd"].column("confidence")), np.sort(recorded))
 
@@ -67,7 +67,7 @@ def _rewrite(src, dst, edit):
     """Copy the outputs of ``src`` to ``dst``, each message through ``edit(topic, index,
     msg)`` (None: left out)."""
     seen = {}
-    topics = {t for ts in OUTPUT_TOPICS.values() for t in ts.values()}
+    topics = set(OUTPUT_TOPICS.values())
     with BagWriter(dst) as w:
         for m in read_bag(src, topics):
             k = seen[m.topic] = seen.get(m.topic, -1) + 1
@@ -79,13 +79,13 @@ def _rewrite(src, dst, edit):
 def test_outputs_of_other_frames_are_mismatched_and_missing_ones_counted(
         bag, annotated, tmp_path):
     def edit(topic, k, msg):
-        if topic == OUTPUT_TOPICS["lmd"]["quality"] and k == 0:
+        if topic == OUTPUT_TOPICS["lmd"] and k == 0:
             msg.detections = msg.detections[::-1]             # other order
-        if topic == OUTPUT_TOPICS["lms"]["segments"] and k == 1:
+        if topic == OUTPUT_TOPICS["lms"] and k == 1:
             msg.segments = msg.segments[:-1]                   # a segment missing
-        if topic == OUTPUT_TOPICS["mimo"]["uncertainty"] and k == 2:
+        if topic == OUTPUT_TOPICS["mimo"] and k == 2:
             msg.clusters[0].detection_id = "0:someone_else"
-        if topic == OUTPUT_TOPICS["lmd"]["quality"] and k == 3:
+        if topic == OUTPUT_TOPICS["lmd"] and k == 3:
             return None                                        # no output at all
         return msg
 
@@ -107,14 +107,14 @@ def test_quality_figures():
     rng = np.random.default_rng(0)
     iou = rng.uniform(0, 1, 400)
     tp = iou >= 0.5
-    r.add(1, tp=tp, iou=iou, confidence=tp * 0.8 + 0.1, predicted_iou=iou,
+    r.add(tp=tp, iou=iou, confidence=tp * 0.8 + 0.1, predicted_iou=iou,
           baseline=rng.uniform(0, 1, 400))
     q = r.quality()
     assert q["auroc"] == pytest.approx(1.0) and 0.4 < q["auroc_baseline"] < 0.6
     assert q["r2"] == pytest.approx(1.0) and q["n"] == 400
     assert q["ece"] == pytest.approx(abs(0.9 - 1) * tp.mean() + 0.1 * (1 - tp.mean()))
     one_class = MethodRows("mimo")
-    one_class.add(1, tp=np.ones(3), iou=np.ones(3), confidence=np.ones(3),
+    one_class.add(tp=np.ones(3), iou=np.ones(3), confidence=np.ones(3),
                   predicted_iou=np.ones(3), baseline=np.ones(3))
     assert one_class.quality()["auroc"] is None  # undefined with one outcome only
     assert MethodRows("lms").quality()["n"] == 0
