@@ -287,9 +287,12 @@ def dbscan_sklearn(n: int, i: np.ndarray, j: np.ndarray, min_samples: int,
 
 # ------------------------------------------------------------------ merging
 def _softmax(z: np.ndarray, temperature: float = 1.0) -> np.ndarray:
-    """Row softmax of ``z / temperature``. Computed class-major: numpy reduces a short
-    contiguous axis (C ~ 5) several times slower than a long one."""
-    t = np.ascontiguousarray(z.T)
+    """Row softmax of ``z / temperature`` in a new array (``z`` is never written).
+    Computed class-major: numpy reduces a short contiguous axis (C ~ 5) several times
+    slower than a long one."""
+    # A copy always: for one row (or one column) z.T is already contiguous, and
+    # np.ascontiguousarray would hand back a view that the in-place steps overwrite.
+    t = z.T.copy(order="C")
     if temperature != 1.0:
         t /= temperature
     t -= t.max(axis=0)

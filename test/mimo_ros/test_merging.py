@@ -1,5 +1,6 @@
 """Tests for mimo_ros.merging (LiDAR-MIMO clustering and merging)."""
 import math
+import zlib
 from types import SimpleNamespace
 
 import numpy as np
@@ -139,6 +140,73 @@ def test_hand_computed_entropies():
         h2(P.mean(axis=0)) - np.mean([h2(p) for p in P]))
     np.testing.assert_allclose(r.class_probs[0], softmax(L.mean(axis=0)))
     assert r.labels[0] == 2 and r.scores[0] == pytest.approx(softmax(L.mean(axis=0))[2])
+
+
+def test_one_box_cluster_is_softmax_of_its_logits():
+    """Issue 14 (1): one head, one box; the softmax used to run twice (0.518 for 0.844)."""
+    z = np.array([[0.0, 2.0, -1.0]])
+    given = z.copy()
+    r = merge_heads([HeadDetections(CAR[None], z)], MergeConfig(voting="affirmative"))
+    np.testing.assert_allclose(r.class_probs[0], softmax(z[0]), rtol=0, atol=1e-15)
+    np.testing.assert_allclose(r.class_probs[0], [0.114, 0.844, 0.042], atol=5e-4)
+    assert r.labels[0] == 1 and r.scores[0] == pytest.approx(0.8438, abs=1e-4)
+    np.testing.assert_array_equal(z, given)
+
+
+def _random_heads(rng, K, C, probabilities):
+    """K heads over a few objects; some heads see nothing (stopped publishing)."""
+    centres = rng.uniform(-30, 30, (int(rng.integers(1, 4)), 2))
+    heads = []
+    for _ in range(K):
+        if rng.random() < 0.3:
+            heads.append(HeadDetections(np.zeros((0, 7)), np.zeros((0, C))))
+            continue
+        m = int(rng.integers(1, len(centres) + 1))
+        at = centres[rng.choice(len(centres), m, replace=False)] + rng.normal(0, 0.2, (m, 2))
+        b = np.column_stack([at, np.zeros(m), np.full(m, 4.0), np.full(m, 2.0),
+                             np.full(m, 1.5), rng.normal(0, 0.1, m)])
+        s = rng.normal(0, 2, (m, C))
+        if probabilities:  # not always normalized: softmax(log p) = p / sum(p)
+            s = np.exp(s) / np.exp(s).sum(axis=1, keepdims=True) * rng.uniform(0.8, 1.2, (m, 1))
+        heads.append(HeadDetections(b, s, rng.uniform(0.01, 0.1, (m, 7))))
+    return heads
+
+
+@pytest.mark.parametrize("setting", ["K=1", "affirmative", "min_cluster_size=1",
+                                     "heads missing"])
+@pytest.mark.parametrize("score_type", ["logits", "probabilities"])
+def test_single_member_clusters_equal_softmax_of_their_logits(setting, score_type):
+    """Every single-member cluster's class distribution is softmax(logits / T) of its one
+    member (for probabilities: the normalized input), and no input array is written."""
+    rng = np.random.default_rng(zlib.crc32(f"{setting} {score_type}".encode()))
+    probs = score_type == "probabilities"
+    singles = 0
+    for _ in range(60):
+        C, T = int(rng.integers(2, 6)), float(rng.choice([1.0, 0.5, 2.0]))
+        K = 1 if setting == "K=1" else int(rng.integers(2, 5))
+        cfg = MergeConfig(voting="consensus" if setting == "K=1" else "affirmative",
+                          min_cluster_size=1 if setting == "min_cluster_size=1" else None,
+                          temperature=T, score_type=score_type)
+        heads = _random_heads(rng, K, C, probs)
+        if setting == "heads missing":  # the node merges only the heads still publishing
+            heads = heads[:int(rng.integers(1, K))]
+        given = [(h.boxes.copy(), h.class_scores.copy(), h.variances) for h in heads]
+        given = [(b, s, None if v is None else v.copy()) for b, s, v in given]
+        r = merge_heads(heads, cfg)
+        for h, (b, s, v) in zip(heads, given):
+            np.testing.assert_array_equal(h.boxes, b)
+            np.testing.assert_array_equal(h.class_scores, s)
+            if v is not None:
+                np.testing.assert_array_equal(h.variances, v)
+        for c in np.flatnonzero(r.stats.cluster_size == 1):
+            (k,), (i,) = r.members(c)
+            s = heads[k].class_scores[i]
+            want = s / s.sum() if probs and T == 1.0 else softmax(
+                (np.log(s) if probs else s) / T)
+            np.testing.assert_allclose(r.class_probs[c], want, rtol=1e-12, atol=1e-15)
+            assert r.scores[c] == pytest.approx(want[r.labels[c]], rel=1e-12)
+            singles += 1
+    assert singles >= 20
 
 
 def test_temperature():
