@@ -187,6 +187,9 @@ class Evaluation:
     rows: dict                                   # method -> MethodRows
     frames: int                                  # input frames read
     example: dict = field(default_factory=dict)  # method -> rows of one frame (plots)
+    example_frame: int | None = None             # its index; None: no frame every method answered
+    example_target: int = 0                      # the frame asked for (default: the middle one)
+    answered_by_all: int = 0                     # frames with matching rows of every method
 
     def quality(self) -> dict:
         return {m: {"frames_in": r.frames_in, "frames_out": r.frames_out,
@@ -198,7 +201,11 @@ def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=
              progress: bool = False) -> Evaluation:
     """Join the recorded outputs with the inputs and ground truth of ``perception_bag``
     (``outputs_bag`` None: the outputs are in it too) and collect every method's rows.
-    ``example_frame`` (default: the middle one): the frame whose rows are kept for plots."""
+
+    The rows of one frame are kept for plots (``ev.example``): the frame nearest to
+    ``example_frame`` (default: the middle one; ties: the earlier) that every method of
+    ``methods`` answered with a matching output, so that the pictures show all of them
+    on one frame. No such frame: ``ev.example`` is empty and ``ev.example_frame`` None."""
     from lidar_quality_core.progress import Progress
     from lidar_quality_ros.bag_io import bag_info
     from lidar_quality_ros.perception_bag import perception_frames
@@ -213,7 +220,7 @@ def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=
     if example_frame is None:
         example_frame = (n_total or 0) // 2
     rows = {m: MethodRows(m) for m in methods}
-    ev = Evaluation(rows, 0)
+    ev = Evaluation(rows, 0, example_target=example_frame)
     bar = Progress("evaluate", n_total, progress)
     want = ("points", "points_gt", "gt_objects", "detections", "segmentation")
     heads = mimo_settings.num_heads if "mimo" in methods else 0
@@ -222,6 +229,7 @@ def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=
         ev.frames += 1
         if f.gt_objects is None or f.points_gt is None:
             continue  # no targets without ground truth
+        answered = {}    # method -> this frame's rows
         for m in methods:
             r = rows[m]
             if m == "lmd" and f.detections is not None:
@@ -250,9 +258,14 @@ def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=
                     r.mismatch_reasons.append(f"stamp {f.stamp_ns}: {e}")
                 continue
             r.add(**{k: got[k] for k in COLUMNS})
-            if f.index == example_frame:
-                ev.example[m] = {**got, "stamp_ns": f.stamp_ns, "frame": f.index,
-                                 "points": f.points}
+            answered[m] = got
+        if len(answered) == len(methods):
+            ev.answered_by_all += 1
+            if ev.example_frame is None or (abs(f.index - example_frame)
+                                            < abs(ev.example_frame - example_frame)):
+                ev.example_frame = f.index
+                ev.example = {m: {**got, "stamp_ns": f.stamp_ns, "frame": f.index,
+                                  "points": f.points} for m, got in answered.items()}
     bar.close()
     return ev
 

@@ -102,6 +102,38 @@ def test_outputs_of_other_frames_are_mismatched_and_missing_ones_counted(
         assert len(ev.rows[m].column("tp")) < len(good.rows[m].column("tp"))
 
 
+def test_pictures_from_a_frame_every_method_answered(bag, annotated, tmp_path):
+    """The plotted frame is the one nearest the middle (frame 2 of 4) that every method
+    answered with a matching output; none such: no example, said by ``example_frame``."""
+    def edit(topic, k, msg):
+        if topic == OUTPUT_TOPICS["lmd"] and k == 2:
+            return None                                    # LMD dropped the middle frame
+        if topic == OUTPUT_TOPICS["mimo"] and k == 1:
+            msg.clusters[0].detection_id = "0:someone_else"  # MIMO's frame 1 mismatched
+        return msg
+
+    holes = tmp_path / "holes"
+    _rewrite(annotated, holes, edit)
+    ev = run(bag, holes)
+    assert ev.example_target == N_FRAMES // 2 == 2
+    assert ev.example_frame == 3 and ev.answered_by_all == N_FRAMES - 2
+    assert {m: ex["frame"] for m, ex in ev.example.items()} == dict.fromkeys(
+        ("lmd", "lms", "mimo"), 3)
+    assert run(bag, holes, example_frame=0).example_frame == 0
+
+    def disjoint(topic, k, msg):   # LMD answered frames 0, 1; LMS frames 2, 3
+        if (topic == OUTPUT_TOPICS["lmd"] and k >= 2) or (topic == OUTPUT_TOPICS["lms"]
+                                                          and k < 2):
+            return None
+        return msg
+
+    none = tmp_path / "none"
+    _rewrite(annotated, none, disjoint)
+    ev = run(bag, none)
+    assert ev.example_frame is None and ev.example == {} and ev.answered_by_all == 0
+    assert ev.rows["lmd"].frames_out == ev.rows["lms"].frames_out == 2
+
+
 def test_quality_figures():
     r = MethodRows("lmd")
     rng = np.random.default_rng(0)
