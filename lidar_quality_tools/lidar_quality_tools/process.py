@@ -16,8 +16,10 @@ as the nodes map them; the frame work is the nodes' processors (``LmdProcessor``
 their bytes (``detection_cdr``) as the nodes do. Inputs are grouped by header stamp; a
 frame is processed once it has all input topics of the bag, or when 16 newer stamps have
 come. A frame a node cannot process (missing input, undecodable or malformed message,
-an exception) is dropped for that node and counted by reason, never the run; exit codes:
-0 done, 2 bad arguments, parameters or models (nothing written).
+an exception) is dropped for that node and counted by reason, never the run. Exit codes:
+0 done; 1 a node processed no frame of a bag (why on stderr: its topics are not in the
+bag, or every frame was dropped, with the reasons counted; the output bags are written
+all the same); 2 bad arguments, parameters or models (nothing written).
 """
 from __future__ import annotations
 
@@ -283,9 +285,11 @@ class NodeStats:
     counts: Counter = field(default_factory=Counter)
     issues: Counter = field(default_factory=Counter)   # frames with an input problem, by key
     wall_s: float = 0.0
+    absent_topics: list = field(default_factory=list)  # input topics not in the bag
 
     def summary(self) -> dict:
         return {"frames_in": self.frames_in, "frames_out": self.frames_out,
+                "absent_topics": list(self.absent_topics),
                 "frames_dropped": sum(self.dropped.values()), "dropped": dict(self.dropped),
                 "counts": dict(self.counts), "issues": dict(self.issues),
                 "wall_s": round(self.wall_s, 3),
@@ -359,11 +363,12 @@ def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
     info = bag_info(in_bag)
     wanted = {t for r in runners for t in r.topics.values() if t in info.topics}
     warn = _Warnings(in_bag.name, progress)
+    stats = {r.name: NodeStats() for r in runners}
     for r in runners:
         absent = [t for t in r.topics.values() if t not in info.topics]
         if absent:
+            stats[r.name].absent_topics = absent
             warn(r.name, "absent_topics", f"topics not in the bag: {', '.join(absent)}")
-    stats = {r.name: NodeStats() for r in runners}
     bar = Progress(f"{in_bag.name}", max((info.topics[t].count for t in wanted), default=0),
                    enabled=progress)
     if out_bag.exists():
@@ -422,10 +427,35 @@ def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
         flush(0)
         drain(float("inf"))
     bar.close()
+    nodes = {name: st.summary() for name, st in stats.items()}
     return {"in": str(in_bag), "out": str(out_bag), "frames": n_frames, "messages_copied": copied,
             "messages_not_processed": dict(late),
-            "wall_s": round(time.perf_counter() - t_start, 3),
-            "nodes": {name: st.summary() for name, st in stats.items()}}
+            "wall_s": round(time.perf_counter() - t_start, 3), "nodes": nodes,
+            "no_output": no_output_reasons(nodes, sorted(info.topics), dict(late))}
+
+
+def no_output_reasons(nodes: dict, bag_topics: list, not_processed: dict | None = None) -> dict:
+    """node -> why it processed no frame of the bag (nodes with an output are left out):
+    its topics are not in the bag, or every frame was dropped (the reasons counted)."""
+    out = {}
+    for name, n in nodes.items():
+        if n["frames_out"]:
+            continue
+        absent = n.get("absent_topics") or []
+        why = []
+        if absent:
+            why.append(f"{'its input topics are' if not n['frames_in'] else 'input topics'} "
+                       f"not in the bag: {', '.join(absent)} (the bag has: "
+                       f"{', '.join(bag_topics) or 'no topic'})")
+        if n["dropped"]:
+            why.append(f"every frame dropped ({n['frames_in']}): " + ", ".join(
+                f"{k} {v}" for k, v in sorted(n["dropped"].items())))
+        elif not absent:
+            late = ", ".join(f"{k} {v}" for k, v in sorted((not_processed or {}).items()))
+            why.append("no frame with its inputs" + (f" (messages not processed: {late})"
+                                                     if late else ""))
+        out[name] = "; ".join(why)
+    return out
 
 
 def process_bag(in_bag, out_bag, *, nodes=tuple(NODES), params: dict | None = None,
@@ -513,7 +543,11 @@ def _plan(bags, out: Path) -> list[tuple[Path, Path]]:
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="process_bag", description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="exit codes: 0 done; 1 a node processed no frame of a "
+                                 "bag (the reason on stderr; output bags written all the "
+                                 "same); 2 bad arguments, parameters or models (nothing "
+                                 "written)")
     ap.add_argument("--bag", action="append", required=True, metavar="IN",
                     help="input bag, or a folder of bags (repeatable)")
     ap.add_argument("--out", required=True, type=Path, help="output bag (one input bag) or "
@@ -542,7 +576,14 @@ def main(argv=None) -> int:
         ap.error(str(exc))
     summaries = [_run(b, o, runners, progress=not args.no_progress) for b, o in pairs]
     print(format_summary(summaries))
-    return 0
+    failed = [(s["in"], node, why) for s in summaries for node, why in s["no_output"].items()]
+    for bag, node, why in failed:
+        print(f"process_bag: FAILED: {node} processed no frame of {bag}: {why}",
+              file=sys.stderr)
+    if failed:
+        print(f"process_bag: exit 1: {len({n for _, n, _ in failed})} node(s) without output "
+              f"(leave a node out with --nodes)", file=sys.stderr)
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":

@@ -135,6 +135,53 @@ def test_bad_frames_are_dropped_and_counted(bag, tmp_path, capsys):
     assert err.count("dropped") == 3 and "CloudFormatError" in err
 
 
+def renamed_copy(bag, dst, rename):
+    """``bag`` with topics renamed (``rename``: old -> new), messages unchanged."""
+    with BagWriter(dst) as w:
+        for m in read_bag(bag):
+            w.write(rename.get(m.topic, m.topic), m.msgtype, m.stamp_ns, m.raw)
+
+
+def test_node_without_output_fails_naming_the_reason(bag, tmp_path, capsys):
+    """Topics under other names: LMD gets no proposals (every frame dropped), MIMO none of
+    its topics; both named with the reason and exit 1, LMS's output still written."""
+    src, out = tmp_path / "renamed", tmp_path / "out"
+    renamed_copy(bag, src, {"/perception/proposals": "/detector/proposals",
+                            **{f"/perception/head_{k}{v}": f"/detector/head_{k}{v}"
+                               for k in range(2) for v in ("", "/variance")}})
+    assert main(["--bag", str(src), "--out", str(out), "--no-progress"]) == 1
+    cap = capsys.readouterr()
+    assert "lms" in cap.out
+    failed = [line for line in cap.err.splitlines() if line.startswith("process_bag: FAILED")]
+    assert len(failed) == 2, cap.err
+    lmd, mimo = failed
+    assert "lmd processed no frame" in lmd and "input topics not in the bag: " \
+        "/perception/proposals" in lmd and f"missing_input {N_FRAMES}" in lmd
+    assert "/detector/proposals" in lmd                       # what the bag has instead
+    assert "mimo processed no frame" in mimo and "its input topics are not in the bag" in mimo
+    assert "/perception/head_1/variance" in mimo and "exit 1" in cap.err
+    assert bag_info(out).topics["/lms/output/segments"].count == N_FRAMES
+
+
+def test_every_frame_malformed_fails_with_the_reasons_counted(bag, tmp_path):
+    src, out = tmp_path / "bad", tmp_path / "out"
+    with BagWriter(src) as w:
+        for m in read_bag(bag):
+            raw = m.raw
+            if m.topic == "/lidar/points":
+                msg = deserialize_message(raw, PointCloud2)
+                msg.data = bytes(msg.data)[:len(msg.data) - 7]
+                raw = serialize_message(msg)
+            w.write(m.topic, m.msgtype, m.stamp_ns, raw)
+    summary = process_bag(src, out, progress=False)
+    assert summary["no_output"] == {
+        "lmd": f"every frame dropped ({N_FRAMES}): malformed_cloud {N_FRAMES}"}
+    assert summary["nodes"]["lmd"]["frames_in"] == N_FRAMES
+    assert summary["nodes"]["mimo"]["frames_out"] == N_FRAMES       # no points needed
+    assert main(["--bag", str(src), "--out", str(tmp_path / "cli"), "--no-progress",
+                 "--nodes", "mimo"]) == 0
+
+
 @pytest.mark.parametrize("args, message", [
     (["--bag", "{tmp}/nope"], "no such file"),
     (["--nodes", "lmd,foo"], "unknown node"),
