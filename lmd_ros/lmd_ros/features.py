@@ -34,18 +34,34 @@ MetaDetect3D; "ours" where the notes leave the choice to us):
     equal to the threshold does not suppress), class not checked (authors; ``class_aware``
     restricts to equal labels), default t = 0.5 (notes). Proposals with a score not above
     ``proposal_score_threshold`` (authors: ``score > score_thr``) are ignored.
-  - Self copy: a proposal that *is* b (IoU_3D >= 1 - 1e-6; detectors normally publish the
-    survivor among the proposals) is not counted twice: b enters the set once, with its
-    own quantities. So a detector that includes its survivors in the proposal list and one
-    that does not give the same features. (The authors zero the highest IoU, which is the
-    survivor in their data.)
+  - Self copy (ours): a proposal that *is* b, i.e. has b's geometry (IoU_3D >= 1 - 1e-6)
+    and b's score (within 1e-6, times max(1, |score|); both tolerances for float32 round
+    trips), is not counted twice: b enters the set once, with its own quantities. So a
+    detector that includes its survivors in the proposal list and one that does not give
+    the same features. Of several such proposals exactly one is b (the closest in score,
+    then in IoU_3D, then the lowest score and box values), never "the first one listed".
+    A proposal with b's geometry but another score is another proposal (another anchor's
+    or class head's) and a member like any other, as in the authors' set, where the
+    survivor is one of the proposals above t and every other one counts too. If no
+    proposal matches, nothing is dropped. (The authors zero the highest IoU, which is
+    the survivor in their data.)
+  - Order: the features do not depend on the order of the proposals, to the last bit:
+    each set is summed in a canonical order (by score, then box values).
 * Set statistics: population std (``np.std``, as the authors). ``theta`` of a proposal
   is taken as ``theta_b + wrap(theta_p - theta_b)`` (ours): near +-pi a set of almost
   equal headings would otherwise get a spurious std of ~pi; a flipped heading still shows
   as a deviation of ~pi. Own ``theta`` is wrapped to [-pi, pi) (ours: detectors differ in
   yaw range).
-* IoU statistics: over Prop(b) without b itself (the authors zero the self match); with
-  no other member all four are 0 (authors). BEV statistics over all other members.
+* IoU statistics (ours): over Prop(b) without b itself. The authors (method notes) keep
+  b's match with itself in each list as a 0 ("the self match is set to 0"); with one
+  candidate or none the four statistics are 0, as ours with no other member. With m >= 1
+  other members theirs differ: min is always 0, and mean (m / (m + 1) times ours) and
+  std mix the members' IoUs with that placeholder, a count effect that n_proposals
+  already carries; max is the same. Reasons to keep ours: the statistics then describe
+  the other proposals only, and the shipped models (models/lmd) were trained on it
+  (their trees split iou_bev_min and iou_3d_min at 0.1 .. 0.9; under the authors' rule
+  both are constantly 0): following the authors changes every box with another member
+  and needs the models retrained. BEV statistics over all other members.
   IoU_3D statistics: ``"threshold"``: over the other members with IoU_3D > t (the authors'
   separate candidate set {IoU_3D > t}; it lies inside the BEV set since IoU_3D <= IoU_BEV);
   ``"exact"``: over all other members of the pre-image.
@@ -75,7 +91,7 @@ from lidar_quality_core.box_geometry import as_boxes, points_in_boxes, segment_s
 from lidar_quality_core.iou import iou_bev_pairs, sparse_iou
 
 __all__ = ["MODES", "OWN_QUANTITIES", "SET_QUANTITIES", "STATS", "DEFAULT_IOU_THRESHOLD",
-           "SELF_IOU", "ProposalSets", "feature_names", "compute_features"]
+           "SELF_IOU", "SELF_SCORE_TOL", "ProposalSets", "feature_names", "compute_features"]
 
 MODES = ("exact", "threshold", "none")
 OWN_QUANTITIES = ("x", "y", "z", "l", "w", "h", "theta", "score", "class", "volume",
@@ -84,8 +100,10 @@ OWN_QUANTITIES = ("x", "y", "z", "l", "w", "h", "theta", "score", "class", "volu
 SET_QUANTITIES = tuple(q for q in OWN_QUANTITIES if q != "class")
 STATS = ("min", "max", "mean", "std")
 DEFAULT_IOU_THRESHOLD = 0.5
-#: A proposal with IoU_3D >= SELF_IOU to the box is the box itself (float32 round trips).
+#: A proposal with IoU_3D >= SELF_IOU to the box and a score within SELF_SCORE_TOL of
+#: its score (times max(1, |score|)) is the box itself (float32 round trips).
 SELF_IOU = 1.0 - 1e-6
+SELF_SCORE_TOL = 1e-6
 
 _CLASS_COL = OWN_QUANTITIES.index("class")
 _THETA_COL = SET_QUANTITIES.index("theta")
@@ -323,15 +341,7 @@ def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, propo
         d, p, v_bev, v_3d = _member_pairs(mode, b, ok, cls, pb, ps, pok, plab, preimage,
                                           float(iou_threshold), class_aware,
                                           proposal_score_threshold, class_names)
-        # self copy: the best-3D-IoU member, if it is the box itself
-        is_self = np.zeros(len(d), dtype=bool)
-        cand = np.flatnonzero(v_3d >= SELF_IOU)
-        if len(cand):
-            cand = cand[np.lexsort((-v_3d[cand], d[cand]))]
-            first = np.unique(d[cand], return_index=True)[1]
-            is_self[cand[first]] = True
-        other = ~is_self
-        d, p, v_bev, v_3d = d[other], p[other], v_bev[other], v_3d[other]
+        d, p, v_bev, v_3d = _without_self_copies(sc, d, p, v_bev, v_3d, pb, ps)
         need, prow = np.unique(p, return_inverse=True)
         allb = np.concatenate([b, pb[need]])
     else:
@@ -367,6 +377,33 @@ def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, propo
     out = np.concatenate(parts, axis=1)
     out[~ok] = np.nan
     return out
+
+
+def _without_self_copies(sc, d, p, v_bev, v_3d, pb, ps):
+    """The member pairs in canonical order, without each box's self copy.
+
+    Self copy of box k: a member with k's geometry (IoU_3D >= SELF_IOU) and score
+    (within SELF_SCORE_TOL); of several, the closest in score, then in IoU_3D, then the
+    lowest (score, box values), so the choice never depends on the proposal order. The
+    rest are sorted by (box, score, box values): sums over a set then run in the same
+    order whatever order the proposals came in (bit-identical features)."""
+    order = np.lexsort((ps[p], d))
+    d, p, v_bev, v_3d = d[order], p[order], v_bev[order], v_3d[order]
+    ms = ps[p]
+    if np.any((d[1:] == d[:-1]) & (ms[1:] == ms[:-1])):  # equal scores in a set (rare)
+        order = np.lexsort(tuple(pb[p][:, ::-1].T) + (ms, d))
+        d, p, v_bev, v_3d, ms = d[order], p[order], v_bev[order], v_3d[order], ms[order]
+    gap = np.abs(ms - sc[d])
+    cand = np.flatnonzero((v_3d >= SELF_IOU)
+                          & (gap <= SELF_SCORE_TOL * np.maximum(1.0, np.abs(sc[d]))))
+    if len(cand):
+        # lexsort is stable and the pairs are already in (box, score, box values) order
+        cand = cand[np.lexsort((-v_3d[cand], gap[cand], d[cand]))]
+        first = np.unique(d[cand], return_index=True)[1]
+        other = np.ones(len(d), dtype=bool)
+        other[cand[first]] = False
+        d, p, v_bev, v_3d = d[other], p[other], v_bev[other], v_3d[other]
+    return d, p, v_bev, v_3d
 
 
 def _unpack_proposals(proposals):

@@ -182,6 +182,14 @@ def model_card(results: dict, command: str) -> str:
         f"{s.get('proposal_score_threshold')} (threshold mode); NMS IoU "
         f"{s.get('nms_iou_threshold')}, NMS score >= {s.get('nms_score_threshold')} "
         f"(exact mode); classes {', '.join(s.get('class_names', []))}.", "",
+        "IoU statistics are ours, not the authors': min / max / mean / std of IoU_3D and "
+        "IoU_BEV over the proposal set without the box itself. The authors keep the box's "
+        "match with itself in each list as a 0, which makes min always 0 and pulls mean and "
+        "std towards 0 by an amount set by the count (already the feature n_proposals); ours "
+        "describe the other proposals only. Following the authors would change every box "
+        "with another proposal and need the models retrained. A proposal is the box itself "
+        "only with its geometry and its score; the features do not depend on the order of "
+        "the proposals (`lmd_ros.features`).", "",
         "## Metrics", "",
         f"Grouped {tr['cv_folds']}-fold cross validation over the training sequences "
         "(mean ± std over folds) and held-out sequences. ECE / MCE: 10 equal-width bins.", "",

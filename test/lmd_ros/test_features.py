@@ -65,8 +65,13 @@ def ref_features(points, inten, boxes, scores, labels, pboxes, pscores, mode, se
         f.insert(OWN_QUANTITIES.index("class"), float(labels[k]))
         if mode != "none":
             mem = list(sets[k]) if mode == "exact" else list(np.flatnonzero(bev[k] > t))
-            if mem and max(i3d[k, mem]) >= 1 - 1e-6:  # the box itself among the proposals
-                mem.remove(mem[int(np.argmax(i3d[k, mem]))])
+            # the box itself among the proposals: its geometry and its score
+            tol = 1e-6 * max(1.0, abs(scores[k]))
+            same = [j for j in mem
+                    if i3d[k, j] >= 1 - 1e-6 and abs(pscores[j] - scores[k]) <= tol]
+            if same:
+                mem.remove(min(same, key=lambda j: (abs(pscores[j] - scores[k]), -i3d[k, j],
+                                                    pscores[j], *pboxes[j])))
             qs = [own] + [ref_quantities(points, inten, pboxes[j], pscores[j], n_valid)
                           for j in mem]
             for q in SET_QUANTITIES:
@@ -175,6 +180,88 @@ def test_self_copy_counted_once():
     without = compute_features(POINTS, INTEN, np.array([box()]), [0.9], [2],
                                proposals=(PROPS[1:], PSCORES[1:]), mode="threshold")
     np.testing.assert_array_equal(with_copy, without)
+
+
+# Issue 14 (2): box score 0.9; proposals b at 0.4, b at 0.9 (the survivor), b shifted at 0.6
+DUP_PROPS = np.array([box(), box(), box(x=1)])
+DUP_SCORES = np.array([0.4, 0.9, 0.6])
+
+
+@pytest.mark.parametrize("mode", ["threshold", "exact"])
+def test_self_copy_is_the_proposal_with_the_box_score(mode):
+    """The same-geometry proposal at 0.4 is another member, whichever comes first (we
+    used to drop the first one listed: score min 0.6, mean 0.8)."""
+    runs = []
+    for perm in ([0, 1, 2], [1, 0, 2], [2, 0, 1], [2, 1, 0]):
+        perm = np.array(perm)
+        inv = np.argsort(perm)  # new index of old proposal j
+        runs.append(compute_features(POINTS, INTEN, np.array([box()]), [0.9], [2],
+                                     proposals=(DUP_PROPS[perm], DUP_SCORES[perm]),
+                                     mode=mode, preimage=[sorted(inv.tolist())]))
+    f = row(runs[0], 0, mode)
+    assert f["n_proposals"] == 3
+    assert f["prop_score_min"] == 0.4 and f["prop_score_max"] == 0.9
+    assert f["prop_score_mean"] == pytest.approx((0.9 + 0.4 + 0.6) / 3, abs=1e-15)
+    assert f["prop_score_std"] == pytest.approx(pstd([0.9, 0.4, 0.6]), abs=1e-15)
+    # IoU statistics over the two other members: the 0.4 copy (IoU 1) and the shifted box
+    assert [f[f"iou_bev_{s}"] for s in STATS] == pytest.approx([0.6, 1.0, 0.8, 0.2])
+    for x in runs[1:]:
+        np.testing.assert_array_equal(x, runs[0])
+
+
+def test_no_proposal_with_the_box_score_drops_nothing():
+    """The survivor not published, a same-geometry proposal at another score: a member."""
+    f = row(compute_features(POINTS, INTEN, np.array([box()]), [0.9], [2],
+                             proposals=(DUP_PROPS[[0, 2]], DUP_SCORES[[0, 2]]),
+                             mode="threshold"), 0)
+    assert f["n_proposals"] == 3 and f["prop_score_min"] == 0.4
+    assert f["prop_score_mean"] == pytest.approx((0.9 + 0.4 + 0.6) / 3, abs=1e-15)
+
+
+def test_self_copy_after_a_float32_round_trip():
+    b = np.array([box(x=12.3456789, y=-7.654321, z=0.123, l=4.21, w=1.87, h=1.53, yaw=0.321)])
+    props = np.vstack([b.astype(np.float32).astype(float), b + [0.5, 0, 0, 0, 0, 0, 0]])
+    score = 0.812345678901
+    x = compute_features(POINTS, INTEN, b, [score], [2], mode="threshold",
+                         proposals=(props, [float(np.float32(score)), 0.5]))
+    y = compute_features(POINTS, INTEN, b, [score], [2], mode="threshold",
+                         proposals=(props[1:], [0.5]))
+    assert col(x, "n_proposals")[0] == 2
+    np.testing.assert_allclose(x, y, rtol=1e-6, atol=1e-6)
+
+
+def _shuffled_frame(seed):
+    """A random frame whose proposals hold the detections (same scores), copies of some
+    detections at other scores and jittered proposals; exact-mode survivors of NMS."""
+    pts, inten, dets, sc, lab, props, psc = random_frame(seed, n_obj=8, n_prop=60)
+    rng = np.random.default_rng(seed + 1000)
+    twin = rng.choice(len(dets), 3, replace=False)
+    props = np.vstack([props, dets, dets[twin], dets[twin[:1]]])
+    psc = np.r_[psc, sc, rng.random(3), sc[twin[0]]]  # the last: an exact duplicate
+    return pts, inten, dets, sc, lab, props, psc, rng
+
+
+@pytest.mark.parametrize("seed", range(12))
+def test_features_do_not_depend_on_the_proposal_order(seed):
+    """Shuffled proposals (and pre-images renumbered to match) give bit-identical
+    features, in both modes, and the loop reference's values."""
+    pts, inten, dets, sc, lab, props, psc, rng = _shuffled_frame(seed)
+    nms = rotated_nms(props, psc, 0.3)
+    pre = [np.r_[k, np.flatnonzero(nms.suppressed_by == k)] for k in nms.keep]
+    cases = {"threshold": (dets, sc, lab, None),
+             "exact": (props[nms.keep], psc[nms.keep], np.zeros(len(nms.keep), int), pre)}
+    for mode, (b, s, lb, sets) in cases.items():
+        runs = []
+        for trial in range(6):
+            perm = np.arange(len(props)) if trial == 0 else rng.permutation(len(props))
+            inv = np.argsort(perm)
+            kw = {} if sets is None else dict(preimage=[rng.permutation(inv[m]) for m in sets])
+            runs.append(compute_features(pts, inten, b, s, lb, proposals=(props[perm], psc[perm]),
+                                         mode=mode, **kw))
+        for x in runs[1:]:
+            np.testing.assert_array_equal(x, runs[0], err_msg=mode)
+        ref = ref_features(pts, inten, b, s, lb, props, psc, mode, sets=sets)
+        np.testing.assert_allclose(runs[0], ref, rtol=1e-9, atol=1e-9, err_msg=mode)
 
 
 def test_exact_mode_known_answers():
@@ -392,8 +479,12 @@ def random_frame(seed, n_obj=6, n_prop=40):
         return o
     dets = jitter(gt, 0.1)
     props = np.vstack([dets[:3], jitter(gt[rng.integers(0, n_obj, n_prop)], 0.3)])
-    return (pts, rng.random(len(pts)), dets, rng.random(n_obj), rng.integers(0, 3, n_obj),
-            props, rng.random(len(props)))
+    out = (pts, rng.random(len(pts)), dets, rng.random(n_obj), rng.integers(0, 3, n_obj),
+           props, rng.random(len(props)))
+    # detections 0, 1 are among the proposals (their own scores); detection 2 has a
+    # proposal of the same geometry but another score (another proposal, a member)
+    out[6][:2] = out[3][:2]
+    return out
 
 
 @pytest.mark.parametrize("seed", range(4))
