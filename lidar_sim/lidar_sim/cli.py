@@ -88,7 +88,7 @@ def generate(out: Path, *, sequences: int, frames: int, seed: int, sensor: str =
                     stats["labelled_kitti"] += kitti.write_frame(
                         out / "kitti", frame_id, f.xyz, f.intensity, f.gt_boxes[visible],
                         [f.gt_kitti_type[k] for k in np.flatnonzero(visible)],
-                        f.gt_occlusion[visible])
+                        f.gt_occlusion[visible], calib=kitti.SIM_CALIB)
                     splits[split].append(frame_id)
                     semantickitti.write_scan(out / "semantickitti", s, i, f.xyz, f.intensity,
                                              classes.to_semantickitti(f.semantic), f.instance)
@@ -98,7 +98,7 @@ def generate(out: Path, *, sequences: int, frames: int, seed: int, sensor: str =
                     stats["objects"].update(names)
                     if errors_file is not None:
                         # only boxes that reach the label files can carry an applied error
-                        visible &= kitti.in_image(f.gt_boxes)
+                        visible &= kitti.in_image(f.gt_boxes, calib=kitti.SIM_CALIB)
                         recs = (inject_box_errors(f.gt_boxes[visible], f.gt_class[visible],
                                                   f.gt_instance[visible], confusions, err_rng, err_cfg)
                                 + inject_region_errors(f.xyz, f.semantic, region_classes, err_rng, err_cfg))
@@ -111,7 +111,8 @@ def generate(out: Path, *, sequences: int, frames: int, seed: int, sensor: str =
                         types = [f.gt_kitti_type[j] if c == f.gt_class[j] else classes.kitti_type(c)
                                  for j, c in zip(row, a_cls)]
                         kitti.write_frame(out / "annotated" / "kitti", frame_id, f.xyz, f.intensity,
-                                          a_boxes, types, f.gt_occlusion[row])
+                                          a_boxes, types, f.gt_occlusion[row],
+                                          calib=kitti.SIM_CALIB)
                         semantickitti.write_scan(out / "annotated" / "semantickitti", s, i, f.xyz,
                                                  f.intensity, classes.to_semantickitti(a_lab), f.instance)
                         for r in recs:

@@ -7,12 +7,16 @@ conversion and features, so a model learns exactly what the node computes):
   post-NMS detections, pre-NMS proposals and the ground truth ``/lidar/gt_objects`` per
   stamp; one group (sequence) per bag;
 * a KITTI object directory (``<root>/<split>/velodyne/*.bin``, ``label_2/*.txt``,
-  ``calib/*.txt`` if present) plus detector result files (KITTI result format: a label
-  line with a 16th column, the score; e.g. ``reference-perception kitti``) and, for the
-  proposal modes, one proposal file per frame in the same format (pre-NMS boxes). Result
-  and proposal boxes become Detection3DArray messages, the scan a PointCloud2, and then
-  take the same path as bag frames. Group = the first ``group_digits`` characters of the
-  frame id (``lidar-sim`` writes ``SSFFFF``: sequence, frame).
+  ``calib/*.txt``) plus detector result files (KITTI result format: a label line with a
+  16th column, the score; e.g. ``reference-perception kitti``) and, for the proposal
+  modes, one proposal file per frame in the same format (pre-NMS boxes). Result and
+  proposal boxes become Detection3DArray messages, the scan a PointCloud2, and then take
+  the same path as bag frames. Group = the first ``group_digits`` characters of the frame
+  id (``lidar-sim`` writes ``SSFFFF``: sequence, frame). Every file is read with its
+  frame's own calibration: labels with ``<split>/calib/<id>.txt`` (required: without it
+  camera-frame boxes cannot be placed), result / proposal files with the
+  ``calib/<id>.txt`` written beside them if there is one (our writers record the
+  calibration they used), else with the dataset's.
 
 Rows: valid scored boxes only (the pipeline's invalid boxes, e.g. NaN values or a class
 outside ``class_names``, have no features; they are counted in ``info["dropped_invalid"]``).
@@ -41,7 +45,8 @@ from lidar_quality_core.progress import Progress
 from lidar_quality_ros.perception_bag import bag_group, resolve_bags
 
 __all__ = ["TP_IOU", "KITTI_TYPES", "LmdDataset", "Progress", "resolve_bags", "bag_group",
-           "load_bags", "load_kitti", "read_kitti_objects", "read_calib", "kitti_to_lidar",
+           "load_bags", "load_kitti", "read_kitti_objects", "read_calib", "frame_calib",
+           "kitti_to_lidar",
            "settings_for", "add_source_args", "settings_from_args", "load_from_args"]
 
 TP_IOU = 0.5
@@ -397,46 +402,54 @@ def load_bags(bags: Sequence, settings_list, *, cache_dir=None, class_aware: boo
 
 
 # ---------------------------------------------------------------------------- KITTI
-def read_calib(path) -> tuple[np.ndarray, np.ndarray]:
-    """(R0_rect 3x3, Tr_velo_to_cam 3x4) of a KITTI object calibration file."""
-    vals = {}
-    for line in Path(path).read_text().splitlines():
-        if ":" in line:
-            k, v = line.split(":", 1)
-            vals[k.strip()] = np.array(v.split(), dtype=np.float64)
-    try:
-        r0 = vals["R0_rect"].reshape(3, 3)
-        tr = vals["Tr_velo_to_cam"].reshape(3, 4)
-    except (KeyError, ValueError) as exc:
-        raise ValueError(f"{path}: no usable R0_rect / Tr_velo_to_cam ({exc})") from None
-    return r0, tr
+def read_calib(path):
+    """A KITTI object calibration file as a ``lidar_sim.kitti.Calibration``."""
+    from lidar_sim.kitti import Calibration
+
+    return Calibration.from_file(path)
 
 
-def kitti_to_lidar(hwl_xyz_ry: np.ndarray, r0: np.ndarray, tr: np.ndarray) -> np.ndarray:
+def frame_calib(directory, fid: str, fallback=None):
+    """The calibration ``<directory>/calib/<fid>.txt``; ``fallback`` when there is none
+    (no fallback: FileNotFoundError naming the file)."""
+    from lidar_sim.kitti import calib_path
+
+    path = calib_path(directory, fid)
+    if path.exists():
+        return read_calib(path)
+    if fallback is None:
+        raise _no_calib(path)
+    return fallback
+
+
+def _no_calib(path, more: int = 0) -> FileNotFoundError:
+    return FileNotFoundError(f"{path}{f' (and {more} more frames)' if more else ''}: no "
+                             f"calibration file; KITTI boxes are in the camera frame and "
+                             f"cannot be placed in the lidar frame without the frame's own "
+                             f"calibration")
+
+
+def kitti_to_lidar(hwl_xyz_ry: np.ndarray, calib) -> np.ndarray:
     """KITTI camera boxes (N, 7: h, w, l, x, y, z bottom centre, rotation_y) -> lidar
-    boxes (N, 7: x, y, z centre, l, w, h, yaw); inverse of ``lidar_sim.kitti.label_lines``."""
-    a = np.asarray(hwl_xyz_ry, dtype=np.float64).reshape(-1, 7)
-    h, w, l = a[:, 0], a[:, 1], a[:, 2]
-    rect = a[:, 3:6]
-    # rect = R0 (Tr[:, :3] v + Tr[:, 3])  =>  v = Tr[:, :3]^-1 (R0^-1 rect - Tr[:, 3])
-    cam = np.linalg.solve(r0, rect.T)
-    v = np.linalg.solve(tr[:, :3], cam - tr[:, 3:4]).T
-    yaw = -a[:, 6] - np.pi / 2
-    yaw = (yaw + np.pi) % (2 * np.pi) - np.pi
-    return np.column_stack([v[:, 0], v[:, 1], v[:, 2] + h / 2, l, w, h, yaw])
+    boxes (N, 7: x, y, z centre, l, w, h, yaw) with the frame's ``calib``; inverse of
+    ``lidar_sim.kitti.label_lines``."""
+    from lidar_sim.kitti import lidar_boxes
+
+    return lidar_boxes(hwl_xyz_ry, calib)
 
 
-def read_kitti_objects(path, calib=None, *, with_score: bool = False):
+def read_kitti_objects(path, calib, *, with_score: bool = False):
     """(lidar boxes (N, 7), class names, scores or None) of a KITTI label / result file.
 
-    ``calib``: (R0_rect, Tr_velo_to_cam), default ``lidar_sim.kitti``'s calibration.
+    ``calib``: the frame's ``lidar_sim.kitti.Calibration`` (:func:`frame_calib`).
     DontCare lines are skipped; types map through :data:`KITTI_TYPES`. ``with_score``:
     the 16th column is the score (result format); a missing score is an error.
     """
-    if calib is None:
-        from lidar_sim import kitti
+    from lidar_sim.kitti import Calibration
 
-        calib = (kitti.R0_RECT, kitti.TR_VELO_TO_CAM)
+    if not isinstance(calib, Calibration):
+        raise TypeError(f"{path}: calib must be the frame's lidar_sim.kitti.Calibration, "
+                        f"got {type(calib).__name__}")
     rows, names, scores = [], [], []
     for n, line in enumerate(Path(path).read_text().splitlines(), 1):
         parts = line.split()
@@ -449,7 +462,7 @@ def read_kitti_objects(path, calib=None, *, with_score: bool = False):
         names.append(KITTI_TYPES.get(parts[0], parts[0].lower()))
         if with_score:
             scores.append(float(parts[15]))
-    boxes = kitti_to_lidar(np.array(rows).reshape(-1, 7), *calib)
+    boxes = kitti_to_lidar(np.array(rows).reshape(-1, 7), calib)
     return boxes, names, (np.array(scores) if with_score else None)
 
 
@@ -469,15 +482,15 @@ def _kitti_messages(fid: str, k: int, root: Path, split: str, results: Path, pro
 
     base = root / split
     scan = np.fromfile(base / "velodyne" / f"{fid}.bin", dtype="<f4").reshape(-1, 4)
-    calib_file = base / "calib" / f"{fid}.txt"
-    calib = read_calib(calib_file) if calib_file.exists() else None
+    calib = frame_calib(base, fid)
     gt_boxes, gt_names, _ = read_kitti_objects(base / "label_2" / f"{fid}.txt", calib)
     header = Header(frame_id="velodyne")
     header.stamp.sec = k  # frames are matched by stamp in the node; here only by position
     cloud = create_xyz_cloud(header, scan[:, :3], scan[:, 3])
 
     def dets(path, prefix):
-        b, names, sc = read_kitti_objects(path, calib, with_score=True)
+        b, names, sc = read_kitti_objects(path, frame_calib(path.parent, fid, calib),
+                                          with_score=True)
         return arrays_to_detections(header, b, names, sc,
                                     ids=[f"{prefix}{i}" for i in range(len(b))])
 
@@ -537,10 +550,17 @@ def load_kitti(root, results, settings_list, *, split: str = "training", proposa
     base = root / split
     files = [base / "velodyne" / f"{i}.bin" for i in ids]
     files += [base / "label_2" / f"{i}.txt" for i in ids]
-    files += [p for p in (base / "calib" / f"{i}.txt" for i in ids) if p.exists()]
+    calibs = [base / "calib" / f"{i}.txt" for i in ids]
+    missing = [c for c in calibs if not c.exists()]
+    if missing:
+        raise _no_calib(missing[0], len(missing) - 1)
+    files += calibs
     files += [results / f"{i}.txt" for i in ids]
     if proposals is not None:
         files += [Path(proposals) / f"{i}.txt" for i in ids]
+    for d in (results, proposals):  # the calibration a result file was written with
+        if d is not None:
+            files += [p for p in (Path(d) / "calib" / f"{i}.txt" for i in ids) if p.exists()]
     key = {"kind": "kitti", "files": _fingerprint(files), "group_digits": group_digits}
     got = _cached(cache_dir, f"kitti_{root.name}_{split}", settings_list, key,
                   lambda miss: _read_kitti(root, split, results, proposals, ids, miss,

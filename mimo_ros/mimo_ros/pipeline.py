@@ -23,6 +23,14 @@ Conversions and conventions:
   index is out of range, or whose values are negative / non-finite is ignored (NaN,
   reported). No variance message: all variances NaN, so the aleatoric variances, ATV and
   the predictive variances are NaN (the epistemic ones are not).
+* Tilted head boxes (|roll| or |pitch| > ``boxes.TILT_TOLERANCE_DEG``) are merged as
+  upright boxes with their yaw, and reported in ``MimoFrame.issues``.
+* Frames: a head (or a PointCloud2 ``cloud_msg``) whose frame_id differs from the first
+  head's is reported in ``MimoFrame.issues`` and still merged, as if the frames were equal
+  (as ``lmd_ros`` does): the heads of one network share its input cloud's frame, so a
+  differing frame_id is far more often a mislabelled header than boxes really in another
+  frame, and dropping that head would silently change K for every frame. No transform
+  is applied.
 * Missing heads (``None`` in the head list: a head that stopped publishing, see
   :class:`InputLiveness`): the frame is merged over the heads present, and the voting
   rule uses K = their number (consensus of 2 heads needs 2 votes; with one head left, 1).
@@ -37,7 +45,8 @@ from typing import Sequence
 
 import numpy as np
 
-from lidar_quality_core.boxes import DetectionArrays, arrays_to_detections, detections_to_arrays
+from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
+                                      detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
 from lidar_quality_core.model_store import models_dir
 
@@ -93,6 +102,13 @@ class MimoSettings:
             raise ValueError(f"class_names must be non-empty strings, got {names!r}")
         if len(set(names)) != len(names):
             raise ValueError(f"class_names has duplicates: {names!r}")
+        m = self.merge.min_cluster_size
+        if m is not None and m > self.num_heads:
+            raise ValueError(
+                f"min_cluster_size {m} > num_heads {self.num_heads}: a cluster reaches more "
+                "than K members only when one head puts several boxes on one object, so "
+                "almost every object would be dropped (the voting rules need at most K: "
+                "affirmative 1, consensus int(K/2 + 1), unanimous K; 0 takes the rule's)")
 
 
 def settings_from_parameters(p: dict) -> MimoSettings:
@@ -195,6 +211,9 @@ def head_detections(det_msg, variance_msg, settings: MimoSettings = MimoSettings
                                          else "class score outside [0, 1]") for i in bad[:5]]
             issues.append(f"{len(bad)} unusable box(es): " + ", ".join(
                 f"#{i}: {w}" for i, w in zip(bad, why)))
+    tilt = tilt_issue(arrays)
+    if tilt:
+        _note(issues, tilt)
     var = _variances(variance_msg, arrays, issues)
     return HeadDetections(arrays.boxes, probs, var), arrays
 
@@ -289,6 +308,23 @@ def cluster_features(merge: MergeResult, settings: MimoSettings, k_used: int,
     return out
 
 
+def _frame_id(msg) -> str | None:
+    """frame_id of a message (or ``DecodedDetections``) with a header, else None."""
+    header = getattr(msg, "header", None)
+    return None if header is None else getattr(header, "frame_id", None)
+
+
+def _frame_id_mismatches(named) -> list[str]:
+    """``"head 1 frame_id 'x' differs from head 0 'y'"`` for each ``(name, message)`` whose
+    frame_id differs from the first one's (inputs without a header are skipped)."""
+    ids = [(name, f) for name, f in ((n, _frame_id(m)) for n, m in named) if f is not None]
+    if not ids:
+        return []
+    ref_name, ref = ids[0]
+    return [f"{name} frame_id {f!r} differs from {ref_name} {ref!r} (merged as if equal)"
+            for name, f in ids[1:] if f != ref]
+
+
 def frame_features(head_msgs: Sequence, variance_msgs: Sequence | None = None,
                    settings: MimoSettings = MimoSettings(), cloud_msg=None) -> MimoFrame:
     """Decode the heads of one frame (``None``: head missing), merge them and compute the
@@ -305,6 +341,8 @@ def frame_features(head_msgs: Sequence, variance_msgs: Sequence | None = None,
     if not used:
         raise ValueError("no head message in this frame")
     issues: list[str] = []
+    issues += _frame_id_mismatches([(f"head {k}", head_msgs[k]) for k in used]
+                                   + [("input/points", cloud_msg)])
     heads, arrays = [], []
     for k in used:
         mine: list[str] = []

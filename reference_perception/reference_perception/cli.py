@@ -15,7 +15,10 @@ from (topic prefix ``--prefix``, default ``/perception``):
 This "perception bag" is the standard input of the demo and of the node tests. ``split``
 simulates a data split (``lidar_sim.splits``) sequence by sequence into perception bags.
 ``kitti`` writes KITTI result files (label format plus a score column) for a KITTI object
-dataset's velodyne scans; ``semantickitti`` writes ``predictions/*.label`` and
+dataset's velodyne scans, each in the camera frame of the scan's own ``calib/<id>.txt``
+(a scan without one: the simulator's calibration, with a warning), and records the
+calibration used in ``<out>/calib/<id>.txt`` (``bag --kitti-results``: the simulator's
+calibration, recorded the same way); ``semantickitti`` writes ``predictions/*.label`` and
 ``probabilities/*.npy`` (float32 (N, classes), class order of ``lidar_sim.classes``).
 """
 from __future__ import annotations
@@ -89,14 +92,14 @@ def _messages(header, cloud, result: dict, quantize: bool):
     return msgs
 
 
-def _kitti_lines(det) -> list[str]:
-    """KITTI result lines of the post-NMS boxes of a DetectorOutput or a HeadOutput."""
+def _write_kitti(directory: Path, frame_id: str, det, calib) -> int:
+    """KITTI result file (and its calibration) of the post-NMS boxes of a DetectorOutput
+    or a HeadOutput."""
     from lidar_sim import classes, kitti
 
     boxes, labels, scores = det.boxes[det.keep], det.labels[det.keep], det.scores[det.keep]
     types = [classes.kitti_type(int(c)) for c in labels]
-    # KITTI result files carry no occlusion estimate: 0
-    return kitti.label_lines(boxes, types, np.zeros(len(boxes)), scores=scores)
+    return kitti.write_results(directory, frame_id, boxes, types, scores, calib=calib)
 
 
 def process_bag(src: Path, dst: Path, perception: Perception, *, points_topic: str = POINTS_TOPIC,
@@ -125,8 +128,9 @@ def process_bag(src: Path, dst: Path, perception: Perception, *, points_topic: s
             for rel, msgtype, out in _messages(msg.header, cloud, result, quantize):
                 w.write(f"{prefix.rstrip('/')}/{rel}", msgtype, m.stamp_ns, out)
             if kitti_results and "detector" in result:
-                (Path(kitti_results) / f"{n:06d}.txt").write_text(
-                    "".join(line + "\n" for line in _kitti_lines(result["detector"])))
+                from lidar_sim.kitti import SIM_CALIB  # a bag has no camera
+
+                _write_kitti(Path(kitti_results), f"{n:06d}", result["detector"], SIM_CALIB)
             n += 1
             if not quiet:
                 sys.stderr.write(f"\r{dst.name}: {n} clouds ({n / (time.monotonic() - t0):.1f}/s)")
@@ -169,23 +173,43 @@ def _read_bin(path: Path):
     return np.ascontiguousarray(scan[:, :3]), np.ascontiguousarray(scan[:, 3])
 
 
+def _frame_calib(base: Path, frame_id: str, warned: list):
+    """The scan's own calibration; the simulator's (warned once per run) without one."""
+    from lidar_sim.kitti import SIM_CALIB, Calibration, calib_path
+
+    path = calib_path(base, frame_id)
+    if path.exists():
+        try:
+            return Calibration.from_file(path)
+        except ValueError as exc:
+            raise SystemExit(f"unusable calibration: {exc}") from None
+    if not warned:
+        sys.stderr.write(f"warning: {path} missing: writing results in the simulator's camera "
+                         f"frame (lidar_sim.kitti.SIM_CALIB), recorded in the output's "
+                         f"calib/<id>.txt; scans with their own calib file use theirs\n")
+        warned.append(path)
+    return SIM_CALIB
+
+
 def process_kitti(root: Path, out: Path, perception: Perception, *, split: str = "training",
                   quiet: bool = False) -> int:
-    """KITTI result files for ``root/<split>/velodyne/*.bin`` (heads: ``out/head_k/``)."""
-    scans = sorted((Path(root) / split / "velodyne").glob("*.bin"))
+    """KITTI result files for ``root/<split>/velodyne/*.bin`` (heads: ``out/head_k/``),
+    each with the calibration it was written with in ``calib/<id>.txt`` beside it."""
+    base = Path(root) / split
+    scans = sorted((base / "velodyne").glob("*.bin"))
     if not scans:
-        raise SystemExit(f"no scans in {Path(root) / split / 'velodyne'}")
+        raise SystemExit(f"no scans in {base / 'velodyne'}")
     out.mkdir(parents=True, exist_ok=True)
+    warned: list = []
     for n, path in enumerate(scans, 1):
+        calib = _frame_calib(base, path.stem, warned)
         xyz, inten = _read_bin(path)
         res = perception.run(xyz, inten)
         if "detector" in res:
-            (out / f"{path.stem}.txt").write_text(
-                "".join(line + "\n" for line in _kitti_lines(res["detector"])))
+            _write_kitti(out, path.stem, res["detector"], calib)
         for k, head in enumerate(res.get("heads", [])):
             d = out / f"head_{k}"
-            d.mkdir(exist_ok=True)
-            (d / f"{path.stem}.txt").write_text("".join(line + "\n" for line in _kitti_lines(head)))
+            _write_kitti(d, path.stem, head, calib)
             np.savez_compressed(d / f"{path.stem}.npz", boxes=head.boxes[head.keep],
                                 class_probs=head.class_probs[head.keep],
                                 variances=head.variances[head.keep])

@@ -138,7 +138,7 @@ def write_kitti(root, frames):
     for fid, f in frames.items():
         types = [kitti_type[synthetic.CLASS_NAMES[c]] for c in f.gt_classes]
         kitti.write_frame(root, fid, f.points, f.intensity, f.gt_boxes, types,
-                          np.zeros(len(f.gt_boxes)))
+                          np.zeros(len(f.gt_boxes)), calib=kitti.SIM_CALIB)
         bg = np.flatnonzero(f.prop_object < 0)[:4]
         det_boxes = np.concatenate([f.detections, f.proposals[bg]])
         det_types = [kitti_type[synthetic.CLASS_NAMES[c]]
@@ -146,25 +146,28 @@ def write_kitti(root, frames):
         det_scores = np.concatenate([f.det_scores, f.prop_scores[bg]])
         (results / f"{fid}.txt").write_text("".join(
             line + "\n" for line in kitti.label_lines(det_boxes, det_types,
-                                                      np.zeros(len(det_boxes)), det_scores)))
+                                                      np.zeros(len(det_boxes)), det_scores,
+                                                      calib=kitti.SIM_CALIB)))
         ptypes = [kitti_type[synthetic.CLASS_NAMES[c]] for c in f.prop_classes]
         (proposals / f"{fid}.txt").write_text("".join(
             line + "\n" for line in kitti.label_lines(f.proposals, ptypes,
-                                                      np.zeros(len(f.proposals)), f.prop_scores)))
+                                                      np.zeros(len(f.proposals)), f.prop_scores,
+                                                      calib=kitti.SIM_CALIB)))
     return results, proposals
 
 
 def test_kitti_label_round_trip(tmp_path):
     f = synthetic.synthetic_frame(n_points=2000, n_objects=30, n_proposals=10, seed=5)
-    front = kitti.in_image(f.gt_boxes)
-    lines = kitti.label_lines(f.gt_boxes, ["Car"] * 30, np.zeros(30), scores=np.arange(30) / 30)
+    front = kitti.in_image(f.gt_boxes, calib=kitti.SIM_CALIB)
+    lines = kitti.label_lines(f.gt_boxes, ["Car"] * 30, np.zeros(30), scores=np.arange(30) / 30,
+                              calib=kitti.SIM_CALIB)
     (tmp_path / "a.txt").write_text(
         "".join(line + "\n" for line in lines)
         + "DontCare -1 -1 -10 1 2 3 4 -1 -1 -1 -1000 -1000 -1000 -10\n")
-    boxes, names, scores = D.read_kitti_objects(tmp_path / "a.txt", with_score=True)
+    boxes, names, scores = D.read_kitti_objects(tmp_path / "a.txt", kitti.SIM_CALIB, with_score=True)
     (tmp_path / "b.txt").write_text(lines[0].rsplit(" ", 1)[0] + "\n")  # no score column
     with pytest.raises(ValueError, match="16 columns"):
-        D.read_kitti_objects(tmp_path / "b.txt", with_score=True)
+        D.read_kitti_objects(tmp_path / "b.txt", kitti.SIM_CALIB, with_score=True)
     assert front.sum() >= 3 and len(boxes) == front.sum() and names == ["car"] * len(boxes)
     np.testing.assert_allclose(scores, (np.arange(30) / 30)[front], atol=1e-4)
     ref = f.gt_boxes[front]
@@ -187,7 +190,7 @@ def test_kitti_directory_dataset(tmp_path):
         for k, (fid, f) in enumerate(frames.items()):
             rows = np.flatnonzero(ds.frame == k)
             gt, names, _ = ds.gt_of(k)
-            front = kitti.in_image(f.gt_boxes)
+            front = kitti.in_image(f.gt_boxes, calib=kitti.SIM_CALIB)
             assert len(gt) == front.sum() > 0
             np.testing.assert_allclose(gt[:, :6], f.gt_boxes[front][:, :6], atol=0.011)
             assert set(names.tolist()) <= set(CLASS_NAMES)
@@ -195,7 +198,8 @@ def test_kitti_directory_dataset(tmp_path):
             np.testing.assert_allclose(ds.iou_any[rows], iou_bev(ds.box[rows], gt).max(axis=1),
                                        atol=1e-12)
             if mode != "exact":  # result boxes as written (exact: NMS of the proposals)
-                written = D.read_kitti_objects(results / f"{fid}.txt", with_score=True)[0]
+                written = D.read_kitti_objects(results / f"{fid}.txt", kitti.SIM_CALIB,
+                                                 with_score=True)[0]
                 np.testing.assert_allclose(ds.box[rows], written[ds.det_index[rows]], atol=1e-12)
         assert ds.tp.any() and (~ds.tp).any()
         assert str(ds.frame_source[0]).endswith("training/velodyne/000000.bin")

@@ -8,7 +8,7 @@ from mimo_ros.merging import HeadDetections, MergeConfig, merge_heads
 from mimo_ros.pipeline import (DEFAULT_CLASS_NAMES, POINT_FEATURES, STAT_FEATURES,
                                InputLiveness, MimoSettings, default_model_paths,
                                frame_features, head_detections, output_messages,
-                               process_frame)
+                               process_frame, settings_from_parameters)
 from reference_perception.messages import box_variance_array, detection_array
 from std_msgs.msg import Header
 
@@ -210,6 +210,56 @@ def test_settings_validation_and_model_paths():
     assert c.name == "mimo_classifier.joblib" and r.name == "mimo_regressor.joblib"
     assert c.parent.name == "mimo"
     assert default_model_paths(True)[0].name == "mimo_points_classifier.joblib"
+
+
+def test_min_cluster_size_above_the_head_count_is_refused():
+    """min_cluster_size 3 with 2 heads was accepted and dropped almost every object."""
+    with pytest.raises(ValueError, match=r"min_cluster_size 3 > num_heads 2: .* unanimous K"):
+        MimoSettings(num_heads=2, merge=MergeConfig(
+            score_type="probabilities", min_cluster_size=3)).validate()
+    p = dict(num_heads=3, eps=0.5, voting="consensus", min_cluster_size=4, class_aware=False,
+             temperature=1.0, use_points=False, class_names=list(NAMES))
+    with pytest.raises(ValueError, match="min_cluster_size 4 > num_heads 3"):
+        settings_from_parameters(p)
+    for m in (0, 1, 3):
+        assert settings_from_parameters({**p, "min_cluster_size": m}).num_heads == 3
+
+
+def test_head_in_another_frame_is_reported_and_merged():
+    other = head_msg()
+    other.header.frame_id = "base_link"
+    f = frame_features([head_msg(), other], None, MimoSettings())
+    assert f.issues == ["head 1 frame_id 'base_link' differs from head 0 'lidar' "
+                        "(merged as if equal)"]
+    same = frame_features([head_msg(), head_msg()], None, MimoSettings())
+    np.testing.assert_array_equal(f.features, same.features)
+    assert same.issues == []
+    # the first head present is the reference; decoded heads and the cloud count too
+    from lidar_quality_core.detection_cdr import decode_detection_array
+    from rclpy.serialization import serialize_message
+
+    f = frame_features([None, decode_detection_array(serialize_message(other)), head_msg()],
+                       None, MimoSettings(num_heads=3),
+                       create_xyz_cloud(header(), BOXES[:, :3]))
+    assert f.issues == [
+        "head 2 frame_id 'lidar' differs from head 1 'base_link' (merged as if equal)",
+        "input/points frame_id 'lidar' differs from head 1 'base_link' (merged as if equal)"]
+
+
+def test_tilted_head_boxes_are_merged_upright_and_reported():
+    """30 deg roll on one head's box was dropped without a word."""
+    m = head_msg()
+    o = m.detections[0].bbox.center.orientation
+    half_roll, half_yaw = np.radians(30) / 2, BOXES[0, 6] / 2
+    # Rz(yaw) Rx(roll): x, y, z, w
+    o.x, o.y = np.sin(half_roll) * np.cos(half_yaw), np.sin(half_roll) * np.sin(half_yaw)
+    o.z, o.w = np.cos(half_roll) * np.sin(half_yaw), np.cos(half_roll) * np.cos(half_yaw)
+    f = frame_features([head_msg(), m], None, MimoSettings())
+    assert f.issues == ["head 1: 1 of 3 boxes have roll/pitch up to 30.0 deg: only yaw is "
+                        "used (boxes are read as upright)"]
+    np.testing.assert_allclose(f.features, frame_features([head_msg(), head_msg()], None,
+                                                          MimoSettings()).features,
+                               rtol=1e-12, atol=1e-12)
 
 
 @pytest.fixture(scope="module")

@@ -1,5 +1,10 @@
 """reference-perception offline: a simulated bag becomes a perception bag; KITTI and
-SemanticKITTI result files."""
+SemanticKITTI result files (KITTI results in each frame's own camera frame, read back to
+the detector's lidar boxes by lmd_ros)."""
+import os
+import shutil
+from pathlib import Path
+
 import numpy as np
 import pytest
 from lidar_quality_core.boxes import detections_to_arrays
@@ -8,7 +13,7 @@ from lidar_quality_ros.bag_io import bag_topics, read_bag
 from lidar_sim.classes import CLASS_NAMES
 from lidar_sim.cli import main as sim_main
 
-from reference_perception.cli import main
+from reference_perception.cli import Perception, main
 from reference_perception.messages import probability_field
 
 
@@ -52,12 +57,20 @@ def test_perception_bag(sim_dir, tmp_path):
     assert [r.name for r in res] == ["000000.txt", "000001.txt"]
     lines = [l.split() for r in res for l in r.read_text().splitlines()]
     assert lines and all(len(l) == 16 and l[0] in ("Car", "Truck", "Pedestrian", "Cyclist") for l in lines)
+    # a bag has no camera: the simulator's calibration, recorded beside the results
+    from lidar_sim.kitti import SIM_CALIB
+    assert all((tmp_path / "kitti_res" / "calib" / r.name).read_text() == SIM_CALIB.text()
+               for r in res)
 
 
 def test_kitti_and_semantickitti_dirs(sim_dir, tmp_path):
     assert main(["kitti", "--root", str(sim_dir / "kitti"), "--out", str(tmp_path / "k"),
                  "--heads", "2", "--no-segmenter", "--quiet"]) == 0
     assert len(list((tmp_path / "k").glob("*.txt"))) == 2
+    for d in (tmp_path / "k", tmp_path / "k" / "head_1"):  # the calibration used, recorded
+        for r in d.glob("*.txt"):
+            assert (d / "calib" / r.name).read_text() == \
+                (sim_dir / "kitti" / "training" / "calib" / r.name).read_text()
     z = np.load(sorted((tmp_path / "k" / "head_1").glob("*.npz"))[0])
     assert z["boxes"].shape[1] == 7 and z["variances"].shape == z["boxes"].shape
     assert main(["semantickitti", "--root", str(sim_dir / "semantickitti"), "--out",
@@ -70,3 +83,91 @@ def test_kitti_and_semantickitti_dirs(sim_dir, tmp_path):
     assert probs.shape[1] == len(CLASS_NAMES)
     from lidar_sim.classes import from_semantickitti
     np.testing.assert_array_equal(from_semantickitti(labels & 0xFFFF), probs.argmax(axis=1))
+
+
+# ------------------------------------------------------------------ KITTI calibration
+def _wrap(a):
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
+def assert_written_boxes(written, boxes, tol=0.01):
+    """Every box read back from a result file is one of the detector's lidar boxes, to
+    ``tol`` (m, rad)."""
+    assert len(written) > 0
+    dist = np.hypot(written[:, None, 0] - boxes[None, :, 0], written[:, None, 1] - boxes[None, :, 1])
+    ref = boxes[dist.argmin(axis=1)]
+    np.testing.assert_allclose(written[:, :6], ref[:, :6], atol=tol)
+    np.testing.assert_allclose(_wrap(written[:, 6] - ref[:, 6]), 0, atol=tol)
+
+
+def detector_boxes(perception, scan_path):
+    scan = np.fromfile(scan_path, "<f4").reshape(-1, 4)
+    det = perception.run(np.ascontiguousarray(scan[:, :3]), np.ascontiguousarray(scan[:, 3]))
+    return det["detector"].boxes[det["detector"].keep]
+
+
+def realdata_kitti_dir() -> Path:
+    env = os.environ.get("LQ_REALDATA_KITTI")
+    return Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "realdata_kitti"
+
+
+def test_kitti_results_on_real_frames_read_back_to_the_detector_boxes(tmp_path):
+    """``reference-perception kitti`` on real KITTI scans: lmd_ros reads the result files
+    back, with the frame's calibration, to the detector's own lidar boxes. With the
+    simulator's calibration in the writer (the old defect) boxes moved by up to 0.33 m."""
+    from lmd_ros import dataset as D
+
+    root = realdata_kitti_dir()
+    base = root / "training"
+    if not (base / "calib").is_dir():
+        pytest.skip(f"real KITTI frames not found at {base} "
+                    "(set LQ_REALDATA_KITTI to the realdata_kitti directory)")
+    out = tmp_path / "res"
+    assert main(["kitti", "--root", str(root), "--out", str(out), "--heads", "0",
+                 "--no-segmenter", "--quiet"]) == 0
+    perception = Perception(detector=True, segmenter=False, heads=0)
+    fids = sorted(p.stem for p in (base / "velodyne").glob("*.bin"))
+    assert fids
+    for fid in fids:
+        boxes = detector_boxes(perception, base / "velodyne" / f"{fid}.bin")
+        calib = D.read_calib(base / "calib" / f"{fid}.txt")
+        written, _, _ = D.read_kitti_objects(out / f"{fid}.txt", calib, with_score=True)
+        assert_written_boxes(written, boxes)
+        # exactly the boxes in the frame's camera image, and the calibration recorded
+        from lidar_sim import kitti
+        assert len(written) == kitti.in_image(boxes, calib=calib).sum()
+        assert (out / "calib" / f"{fid}.txt").read_text() == calib.text()
+
+
+def test_kitti_dataset_without_calibration(sim_dir, tmp_path, capsys):
+    """No calib file: the simulator's calibration, said and recorded; lmd_ros reads the
+    results with the recorded one and refuses labels it cannot place."""
+    from lidar_sim import kitti
+    from lmd_ros import dataset as D
+
+    root = tmp_path / "kitti"
+    shutil.copytree(sim_dir / "kitti", root)
+    shutil.rmtree(root / "training" / "calib")
+    out = tmp_path / "res"
+    assert main(["kitti", "--root", str(root), "--out", str(out), "--heads", "0",
+                 "--no-segmenter", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("warning:") == 1 and "calib/000000.txt missing" in err and "SIM_CALIB" in err
+    fids = sorted(p.stem for p in out.glob("*.txt"))
+    assert fids == ["000000", "000001"]
+    assert all((out / "calib" / f"{f}.txt").read_text() == kitti.SIM_CALIB.text() for f in fids)
+    with pytest.raises(FileNotFoundError, match=r"training/calib/000000.txt \(and 1 more frames\): "
+                                                r"no calibration file"):
+        D.load_kitti(root, out, [D.settings_for("none")], progress=False)
+    # the dataset gets a calibration of its own that differs from the one the results were
+    # written with: the results are still read with theirs
+    other = kitti.Calibration(kitti.P2, kitti.R0_RECT,
+                              kitti.TR_VELO_TO_CAM + [[0, 0, 0, 0.3], [0, 0, 0, 0], [0, 0, 0, 0]])
+    (root / "training" / "calib").mkdir()
+    for f in fids:
+        kitti.calib_path(root / "training", f).write_text(other.text())
+    ds = D.load_kitti(root, out, [D.settings_for("none")], progress=False)["none"]
+    perception = Perception(detector=True, segmenter=False, heads=0)
+    for k, f in enumerate(fids):
+        boxes = detector_boxes(perception, root / "training" / "velodyne" / f"{f}.bin")
+        assert_written_boxes(ds.box[ds.frame == k], boxes)
