@@ -2,7 +2,9 @@
 
 Box rows are ``x, y, z, l, w, h, yaw`` with (x, y, z) the box centre, as in
 ``BoundingBox3D.center`` (see ``box_geometry``). Yaw comes from any quaternion (ZYX Euler
-angles); roll and pitch are reported, not applied, because lidar boxes are upright.
+angles); roll and pitch are not applied, because lidar boxes are upright: they are kept in
+``DetectionArrays.roll_pitch``, and :func:`tilt_issue` words the warning the processors
+raise when a box is tilted by more than :data:`TILT_TOLERANCE_DEG` (the box is kept).
 Messages are read field by field (a bounded loop over detections); everything else is
 vectorized. No rclpy: only the message classes are imported, lazily where needed.
 """
@@ -13,6 +15,9 @@ from dataclasses import dataclass, field
 import numpy as np
 
 BOX_COLUMNS = ("x", "y", "z", "l", "w", "h", "yaw")
+#: |roll| or |pitch| above this [deg] is reported: float32 quaternions of upright boxes
+#: stay far below it, a detector that really tilts its boxes far above.
+TILT_TOLERANCE_DEG = 1.0
 
 
 def quaternion_to_rpy(q: np.ndarray) -> np.ndarray:
@@ -54,6 +59,25 @@ class DetectionArrays:
 
     def __len__(self) -> int:
         return len(self.labels)
+
+    def tilt_deg(self) -> np.ndarray:
+        """(N,) larger of |roll| and |pitch| of each box [deg] (NaN for a non-finite
+        orientation)."""
+        return np.degrees(np.abs(self.roll_pitch).max(axis=1)) if len(self) else np.zeros(0)
+
+
+def tilt_issue(arrays: DetectionArrays, what: str = "boxes",
+               tolerance_deg: float = TILT_TOLERANCE_DEG) -> str | None:
+    """``"3 of 12 boxes have roll/pitch up to 30.0 deg: only yaw is used"`` when valid
+    boxes of ``arrays`` are tilted by more than ``tolerance_deg``, else None."""
+    tilt = arrays.tilt_deg()
+    with np.errstate(invalid="ignore"):
+        bad = arrays.valid & (tilt > tolerance_deg)
+    n = int(np.count_nonzero(bad))
+    if not n:
+        return None
+    return (f"{n} of {len(arrays)} {what} have roll/pitch up to {tilt[bad].max():.1f} deg: "
+            "only yaw is used (boxes are read as upright)")
 
 
 def detections_to_arrays(detections) -> DetectionArrays:

@@ -22,6 +22,7 @@ __all__ = [
     "cloud_dtype",
     "cloud_to_structured",
     "read_fields",
+    "check_xyz_fields",
     "xyz_intensity",
     "finite_mask",
     "PackedCloud",
@@ -207,9 +208,9 @@ def cloud_to_structured(msg) -> np.ndarray:
     return np.ndarray(shape, dtype, buffer=buf, offset=0, strides=(row_step, point_step))
 
 
-def _missing(name: str, dtype: np.dtype) -> CloudFormatError:
+def _missing(name: str, dtype: np.dtype, where: str = "cloud") -> CloudFormatError:
     avail = ", ".join(dtype.names) if dtype.names else "(none)"
-    return CloudFormatError(f"field {name!r} not in cloud; available fields: {avail}")
+    return CloudFormatError(f"field {name!r} not in {where}; available fields: {avail}")
 
 
 def read_fields(msg, names, dtype=np.float32) -> np.ndarray:
@@ -243,19 +244,37 @@ def read_fields(msg, names, dtype=np.float32) -> np.ndarray:
     return out
 
 
+def check_xyz_fields(dtype: np.dtype, where: str = "cloud") -> None:
+    """Raise :class:`CloudFormatError` unless ``dtype`` (of :func:`cloud_to_structured`)
+    has ``x``, ``y``, ``z`` fields of count 1 and a float type.
+
+    Integer coordinates are refused: ROS drivers that pack them (INT16 / INT32) count in
+    mm or cm, so reading them as metres would scale the cloud by 100-1000 without a word.
+    """
+    fields = dtype.fields or {}
+    for name in ("x", "y", "z"):
+        if name not in fields:
+            raise _missing(name, dtype, where)
+        ft = fields[name][0]
+        if ft.shape:
+            raise CloudFormatError(f"field {name!r} has count {ft.shape[0]}, expected 1")
+        if ft.kind != "f":
+            code = _KIND_SIZE_TO_DATATYPE.get((ft.kind, ft.itemsize))
+            raise CloudFormatError(
+                f"{where} field {name!r} is {_DATATYPE_NAMES.get(code, str(ft))}: x, y, z "
+                "must be FLOAT32 / FLOAT64 metres (integer coordinates are usually mm or cm; "
+                "convert them to metres before publishing)")
+
+
 def xyz_intensity(msg, intensity_names: Sequence[str] = ("intensity", "reflectance", "i")):
     """``(xyz float32 (N, 3), intensity float32 (N,) or None)`` from a cloud.
 
-    The intensity is the first of ``intensity_names`` present in the cloud.
+    The intensity is the first of ``intensity_names`` present in the cloud. x, y, z must
+    be float fields (:func:`check_xyz_fields`).
     """
     arr = cloud_to_structured(msg)
     fields = arr.dtype.fields or {}
-    for name in ("x", "y", "z"):
-        if name not in fields:
-            raise _missing(name, arr.dtype)
-        if fields[name][0].shape:
-            raise CloudFormatError(
-                f"field {name!r} has count {fields[name][0].shape[0]}, expected 1")
+    check_xyz_fields(arr.dtype)
     xyz = np.empty((arr.size, 3), np.float32)
     dst = xyz.reshape(arr.shape + (3,))
     dst[..., 0] = arr["x"]

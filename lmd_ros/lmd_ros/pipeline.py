@@ -21,9 +21,20 @@ Proposal modes (``LmdSettings.proposal_mode``, see :mod:`lmd_ros.features`):
 * ``"none"``: detections only (17 features).
 
 Invalid boxes: a detection whose box cannot be used (``boxes.detections_to_arrays``
-reasons: non-finite values, size <= 0, no hypothesis, ...) or whose class is not in
-``class_names`` ("unknown class", since the model never saw it) gets an all-NaN feature
-row, ``valid = False``, NaN confidence and NaN predicted IoU. It stays in the output.
+reasons: non-finite values, size <= 0, no hypothesis, ...), whose class is not in
+``class_names`` ("unknown class", since the model never saw it) or whose score lies
+outside [0, 1] gets an all-NaN feature row, ``valid = False``, NaN confidence and NaN
+predicted IoU. It stays in the output.
+
+Scores outside [0, 1] (logits, a bug, 1e6): the meta models were trained on detector
+probabilities, and a score feature outside their range gives a confidence that looks
+fine and means nothing. So such a box is not scored (NaN confidence, above), and a
+proposal with such a score is treated like an invalid proposal: it takes no part in the
+exact mode's NMS and belongs to no proposal set (the other members' statistics stay in
+the models' domain). Both are reported (issue ``"scores"``), with the range seen.
+
+Tilted boxes (|roll| or |pitch| > ``boxes.TILT_TOLERANCE_DEG``): features take the box as
+upright with its yaw (the box is kept and scored); reported (issue ``"roll_pitch"``).
 
 The cloud must have x, y, z and an intensity field (``intensity``, ``reflectance`` or
 ``i``): the reflectance statistics are model inputs, so a cloud without one is refused
@@ -37,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays
+from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt_issue
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
                                               rescaled_scores)
 from lidar_quality_core.model_store import models_dir
@@ -112,6 +123,8 @@ class LmdFrame:
     header: object = None        # header of the scored boxes' array (output header)
     source: object = None        # Detection3DArray or DecodedDetections they come from
     rows: np.ndarray | None = None  # (n,) their rows in ``source``
+    #: input problems seen while computing the features (``"scores"``, ``"roll_pitch"``)
+    issues: dict = field(default_factory=dict)
 
 
 def take_detections(arr: DetectionArrays, idx) -> DetectionArrays:
@@ -137,6 +150,30 @@ def _mark_unknown_classes(arr: DetectionArrays, class_names) -> DetectionArrays:
         arr.valid[i] = False
         arr.reasons[i] = f"unknown class {arr.labels[i]!r}"
     return arr
+
+
+def _unit_range_violations(arr: DetectionArrays) -> np.ndarray:
+    """(N,) bool: valid boxes whose score lies outside [0, 1]."""
+    with np.errstate(invalid="ignore"):
+        return arr.valid & ((arr.scores < 0.0) | (arr.scores > 1.0))
+
+
+def _mark_out_of_range_scores(arr: DetectionArrays, bad: np.ndarray) -> DetectionArrays:
+    """``arr`` with the ``bad`` boxes made invalid, reason "score s outside [0, 1]" (a copy
+    where anything changes)."""
+    if not bad.any():
+        return arr
+    arr = replace(arr, valid=arr.valid.copy(), reasons=list(arr.reasons))
+    for i in np.flatnonzero(bad).tolist():
+        arr.valid[i] = False
+        arr.reasons[i] = f"score {arr.scores[i]:.6g} outside [0, 1]"
+    return arr
+
+
+def _score_note(topic: str, arr: DetectionArrays, bad: np.ndarray, effect: str) -> str:
+    s = arr.scores[bad]
+    return (f"{topic}: {int(bad.sum())} of {len(arr)} boxes score outside [0, 1] "
+            f"({s.min():.6g} .. {s.max():.6g}; the meta models take probabilities): {effect}")
 
 
 def _n_finite(xyz: np.ndarray, inten: np.ndarray) -> int:
@@ -190,6 +227,19 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
     if mode != "none" and proposals_msg is None:
         raise ValueError(f'proposal mode "{mode}" needs the proposals')
     props = _arrays(proposals_msg) if mode != "none" else None
+    scores_notes, tilt_notes = [], []
+    prop_scores = None if props is None else props.scores
+    if props is not None:
+        bad = _unit_range_violations(props)
+        if bad.any():
+            prop_scores = np.where(bad, np.nan, props.scores)  # NaN score: in no set
+            props = _mark_out_of_range_scores(props, bad)
+            scores_notes.append(_score_note(
+                "input/proposals", props, bad, "left out of NMS and of every proposal set"
+                if mode == "exact" else "left out of every proposal set"))
+        tilt = tilt_issue(props, "proposals")
+        if tilt:
+            tilt_notes.append(f"input/proposals: {tilt}")
     if mode == "exact":
         keep, sup = _exact_nms(props, settings)
         dets = take_detections(props, keep)
@@ -203,6 +253,14 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
         kw = (dict(iou_threshold=settings.iou_threshold,
                    proposal_score_threshold=settings.proposal_score_threshold)
               if mode == "threshold" else {})
+        bad = _unit_range_violations(dets)
+        if bad.any():
+            dets = _mark_out_of_range_scores(dets, bad)
+            scores_notes.append(_score_note("input/detections", dets, bad,
+                                            "not scored (NaN confidence)"))
+        tilt = tilt_issue(dets, "detections")
+        if tilt:
+            tilt_notes.append(f"input/detections: {tilt}")
     dets = _mark_unknown_classes(dets, settings.class_names)
     extra = None
     if settings.class_score_features:
@@ -211,12 +269,17 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
                                 ) if len(dets) else np.zeros((0, len(settings.class_names)))
     X = features.compute_features(
         xyz, inten, dets.boxes, dets.scores, dets.labels,
-        proposals=None if props is None else (props.boxes, props.scores),
+        proposals=None if props is None else (props.boxes, prop_scores),
         mode=mode, class_names=settings.class_names, class_scores=extra, **kw)
     valid = dets.valid.copy()
     X[~valid] = np.nan
+    issues = {}
+    if scores_notes:
+        issues["scores"] = "; ".join(scores_notes)
+    if tilt_notes:
+        issues["roll_pitch"] = "; ".join(tilt_notes)
     return LmdFrame(dets, _messages(source, rows), X, valid, _n_finite(xyz, inten),
-                    source.header, source, rows)
+                    source.header, source, rows, issues)
 
 
 @dataclass
@@ -230,7 +293,8 @@ class LmdOutputs:
     detections: object         # Detection3DArray, or its serialized bytes for decoded input
     quality: object            # DetectionQualityArray (every scored box, kept or not)
     markers: object = None     # MarkerArray, or None when not asked for
-    #: input problems by key (``"detections"``, ``"frame_id"``); absent key = no problem
+    #: input problems by key (``"detections"``, ``"frame_id"``, ``"scores"``,
+    #: ``"roll_pitch"``); absent key = no problem
     issues: dict = field(default_factory=dict)
 
 
@@ -295,7 +359,7 @@ class LmdProcessor:
                         for i, (s, c, u) in enumerate(zip(dets.scores.tolist(), conf.tolist(),
                                                           iou.tolist()))])
         mk = self.markers(frame, conf, iou, kept) if markers else None
-        issues = {}
+        issues = dict(frame.issues)
         if not frame.valid.all():
             bad = [f"#{i} {dets.ids[i]!r}: {dets.reasons[i]}"
                    for i in np.flatnonzero(~frame.valid).tolist()]

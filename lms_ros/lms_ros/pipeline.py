@@ -14,8 +14,10 @@ Input layouts (:func:`decode`)
   ``reference_perception.messages.probability_field``); or two clouds, the points and
   the probabilities, with equal point counts (point i of one is point i of the other).
   A probability field is float32 / float64 (taken as is) or uint8 (quantized:
-  value / 255); fields of one cloud may mix both. Anything else (missing field, count !=
-  1, other dtype, unequal counts) raises :class:`CloudFormatError` naming the problem.
+  value / 255); fields of one cloud may mix both. x, y, z are float32 / float64 metres
+  (integer coordinates, in practice mm or cm, are refused). Anything else (missing
+  field, count != 1, other dtype, unequal counts) raises :class:`CloudFormatError`
+  naming the problem.
 Probability checks (per point, vectorized)
   A point whose probabilities hold a non-finite or negative value, or sum to 0, has
   unusable probabilities: it is treated like a point with non-finite coordinates (no
@@ -29,9 +31,15 @@ Ring
   With ``use_ring`` and a ``ring_field`` (integer) in the points cloud, the image row is
   the ring: ``row = channels - 1 - ring`` (Velodyne drivers number ring 0 = lowest beam,
   our row 0 is the top) unless ``ring_zero_top`` (``lidar_sim`` and Ouster: ring 0 =
-  top); rings outside ``[0, channels)`` fall outside the image (segment -1). Without a
-  ring the row is the elevation bin of ``channels`` equal bins from ``fov_up_deg`` down
-  to ``fov_down_deg``.
+  top). Without a ring the row is the elevation bin of ``channels`` equal bins from
+  ``fov_up_deg`` down to ``fov_down_deg``. A ring field that is not an integer beam
+  index (a float / multi-value field, or a value outside ``[0, channels)`` at a finite
+  point: another field named by ``ring_field``, or ``channels`` below the sensor's beam
+  count) is not used: the frame takes the elevation rows and the processor reports it
+  (issue ``"ring"``). Chosen over dropping the frame or the out-of-range points: the
+  frame still gets segments and confidences over all its points, and the warning names
+  the setting to fix. ``LmsSettings.validate`` refuses a ``ring_field`` naming x, y, z
+  or an intensity field at start.
 Outputs (:class:`LmsProcessor`)
   ``output/points``: the input points in the input order and layout (height / width),
   fields ``x, y, z, intensity`` (float32; intensity 0 when the input has none),
@@ -54,13 +62,15 @@ from pathlib import Path
 import numpy as np
 
 from lidar_quality_core.model_store import models_dir
-from lidar_quality_core.pointcloud import CloudFormatError, cloud_to_structured, pack_cloud
+from lidar_quality_core.pointcloud import (CloudFormatError, check_xyz_fields,
+                                            cloud_to_structured, pack_cloud)
 from lidar_quality_core.range_image import RangeImageConfig
 
 from . import segment_metrics
 from .segment_metrics import SegmentResult, compute_segments
 
-__all__ = ["CLASS_NAMES", "NO_LABEL", "INTENSITY_FIELDS", "LmsSettings", "LmsInput",
+__all__ = ["CLASS_NAMES", "NO_LABEL", "INTENSITY_FIELDS", "MAX_CHANNELS", "MAX_WIDTH",
+           "MAX_PIXELS", "LmsSettings", "LmsInput",
            "decode", "frame_metrics", "default_model_paths", "probability_field",
            "LmsOutputs", "LmsProcessor", "OUTPUT_FIELDS"]
 
@@ -78,6 +88,19 @@ INTENSITY_FIELDS = ("intensity", "reflectance", "i")
 OUTPUT_FIELDS = (("x", np.float32), ("y", np.float32), ("z", np.float32),
                  ("intensity", np.float32), ("label", np.uint16), ("segment", np.int32),
                  ("confidence", np.float32), ("predicted_iou", np.float32))
+
+
+#: Range image bounds of :meth:`LmsSettings.validate` (see ``_LIMIT_WHY``).
+MAX_CHANNELS = 1024
+MAX_WIDTH = 36000
+MAX_PIXELS = 1 << 22
+_LIMIT_WHY = {
+    "channels": "one image row per beam, and the largest lidars have a few hundred",
+    "width": "360 deg / width is the column resolution, and 36000 columns are 0.01 deg, "
+             "finer than any scanning lidar",
+    "pixels": "a frame needs ~150 bytes per pixel (measured: ~600 MB and seconds of work "
+              "at this bound), so far larger images fail every frame with MemoryError",
+}
 
 
 def probability_field(class_name: str) -> str:
@@ -125,13 +148,25 @@ class LmsSettings:
         fields = self.field_names()
         if len(set(fields)) != len(fields):
             raise ValueError(f"class_names give duplicate probability fields: {fields}")
+        if self.use_ring and self.ring_field in {"x", "y", "z"} | set(INTENSITY_FIELDS):
+            raise ValueError(
+                f"ring_field {self.ring_field!r} names a coordinate / intensity field, not "
+                "the beam index: every frame would fall back to elevation rows (set "
+                "ring_field to the cloud's ring field, e.g. ring, or use_ring: false)")
         clash = set(fields) & ({"x", "y", "z", self.ring_field} | set(INTENSITY_FIELDS))
         if clash:
             raise ValueError(f"class_names clash with point fields: {sorted(clash)}")
-        for name in ("channels", "width"):
+        for name, top in (("channels", MAX_CHANNELS), ("width", MAX_WIDTH)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
+            if v > top:
+                raise ValueError(f"{name} must be <= {top}, got {v}: {_LIMIT_WHY[name]}")
+        if self.channels * self.width > MAX_PIXELS:
+            raise ValueError(
+                f"channels x width = {self.channels} x {self.width} = "
+                f"{self.channels * self.width} pixels exceeds {MAX_PIXELS}: "
+                f"{_LIMIT_WHY['pixels']}")
         up, down = self.fov_up_deg, self.fov_down_deg
         if not (math.isfinite(up) and math.isfinite(down) and -90 <= down < up <= 90):
             raise ValueError(f"need -90 <= fov_down_deg < fov_up_deg <= 90, got "
@@ -161,6 +196,8 @@ class LmsInput:
     n_bad_probabilities: int = 0      # unusable probabilities (part of n_invalid_points)
     quantized: bool = False           # some probability field was uint8
     shape: tuple = ()                 # (height, width) of the points cloud
+    ring_issue: str | None = None     # why the cloud's ring field was not used (rows from
+                                      # elevation), None when it was or there is none
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -168,13 +205,7 @@ class LmsInput:
 
 def _xyz_intensity(arr: np.ndarray):
     fields = arr.dtype.fields or {}
-    for name in ("x", "y", "z"):
-        if name not in fields:
-            raise CloudFormatError(f"field {name!r} not in input/points; available fields: "
-                                   f"{', '.join(arr.dtype.names or ()) or '(none)'}")
-        if fields[name][0].shape:
-            raise CloudFormatError(f"field {name!r} has count {fields[name][0].shape[0]}, "
-                                   "expected 1")
+    check_xyz_fields(arr.dtype, "input/points")
     xyz = np.empty((3, arr.size), np.float32)
     _gather(arr.reshape(-1), "xyz", xyz)
     xyz = xyz.T     # (N, 3) view; compute_segments and the output read its columns
@@ -187,18 +218,35 @@ def _xyz_intensity(arr: np.ndarray):
     return xyz, np.asarray(arr[inten_name], dtype=np.float32).reshape(-1)
 
 
-def _ring(arr: np.ndarray, settings: LmsSettings) -> np.ndarray | None:
+def _ring(arr: np.ndarray, xyz: np.ndarray, settings: LmsSettings
+          ) -> tuple[np.ndarray | None, str | None]:
+    """(image row of each point or None, why the ring field was not used or None): a ring
+    field that is not an integer beam index in ``[0, channels)`` (at the finite points)
+    leaves the frame to the elevation rows, with the reason."""
     fields = arr.dtype.fields or {}
-    if not settings.use_ring or settings.ring_field not in fields:
-        return None
-    dt = fields[settings.ring_field][0]
+    name = settings.ring_field
+    if not settings.use_ring or name not in fields:
+        return None, None
+    dt = fields[name][0]
+    fix = ("rows from elevation for this frame (set ring_field to the beam index field, "
+           "channels to the beam count, or use_ring: false)")
     if dt.shape or dt.kind not in "iu":
-        raise CloudFormatError(f"ring field {settings.ring_field!r} must be one integer per "
-                               f"point, got {dt}")
-    ring = np.asarray(arr[settings.ring_field]).reshape(-1).astype(np.int32)
+        what = f"count {dt.shape[0]}" if dt.shape else str(dt.base)
+        return None, f"ring field {name!r} ({what}) is not one integer beam index per point: {fix}"
+    raw = np.asarray(arr[name]).reshape(-1)
+    C = settings.channels
+    if raw.size and (raw.min() < 0 or raw.max() >= C):
+        ok = np.isfinite(xyz[:, 0]) & np.isfinite(xyz[:, 1]) & np.isfinite(xyz[:, 2])
+        out = ok & ((raw < 0) | (raw >= C))
+        n_out = int(np.count_nonzero(out))
+        if n_out:  # a sentinel ring on NaN points (no return) is no problem
+            lo, hi = int(raw[ok].min()), int(raw[ok].max())
+            return None, (f"ring field {name!r} holds {lo}..{hi} at finite points ({n_out} of "
+                          f"{int(np.count_nonzero(ok))} outside [0, channels={C})): {fix}")
+    ring = raw.astype(np.int32)
     if not settings.ring_zero_top:
-        np.subtract(np.int32(settings.channels - 1), ring, out=ring)
-    return ring
+        np.subtract(np.int32(C - 1), ring, out=ring)
+    return ring, None
 
 
 def _probabilities(arr: np.ndarray, names, source: str) -> tuple[np.ndarray, bool]:
@@ -247,7 +295,7 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None) -> LmsInpu
     :class:`CloudFormatError` for an unusable input."""
     arr = cloud_to_structured(points_msg)
     xyz, intensity = _xyz_intensity(arr)
-    ring = _ring(arr, settings)
+    ring, ring_issue = _ring(arr, xyz, settings)
     N = len(xyz)
     if probabilities_msg is None:
         probs_cm, quantized = _probabilities(arr, settings.field_names(), "input/points")
@@ -286,7 +334,8 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None) -> LmsInpu
     shape = tuple(arr.shape) if arr.ndim == 2 else (1, N)
     return LmsInput(xyz=xyz, intensity=intensity, ring=ring, probs=probs_cm.T,
                     n_renormalized=n_renorm, n_invalid_points=int(N - np.count_nonzero(valid)),
-                    valid=valid, n_bad_probabilities=n_bad, quantized=quantized, shape=shape)
+                    valid=valid, n_bad_probabilities=n_bad, quantized=quantized, shape=shape,
+                    ring_issue=ring_issue)
 
 
 def frame_metrics(inp: LmsInput, settings: LmsSettings) -> SegmentResult:
@@ -380,6 +429,8 @@ class LmsProcessor:
                 f"{inp.n_bad_probabilities} of {len(inp)} points had unusable probabilities "
                 "(non-finite, negative or all 0): no segment, label "
                 f"{NO_LABEL}, NaN confidence")
+        if inp.ring_issue:
+            issues["ring"] = inp.ring_issue
         if inp.intensity is None:
             issues["intensity"] = ("input/points has no intensity field (intensity, "
                                    "reflectance or i): the intensity metrics read 0")

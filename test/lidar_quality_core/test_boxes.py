@@ -4,8 +4,9 @@ import math
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from lidar_quality_core.boxes import (arrays_to_detections, detections_to_arrays,
-                                      quaternion_to_rpy, yaw_to_quaternion)
+from lidar_quality_core.boxes import (TILT_TOLERANCE_DEG, arrays_to_detections,
+                                      detections_to_arrays, quaternion_to_rpy, tilt_issue,
+                                      yaw_to_quaternion)
 from std_msgs.msg import Header
 from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesisWithPose
 
@@ -102,6 +103,31 @@ def test_yaw_from_any_quaternion(r, p, y, scale, flip):
     arr = detections_to_arrays([_det(quat=tuple(q))])
     assert math.isclose(arr.boxes[0, 6], y, abs_tol=1e-7)
     np.testing.assert_allclose(arr.roll_pitch[0], [r, p], atol=1e-7)
+
+
+def test_tilted_boxes_are_kept_and_reported():
+    """Roll / pitch were dropped without a word; the box stays (valid, yaw kept) and
+    ``tilt_issue`` words the warning, ignoring invalid boxes and float32 rounding."""
+    deg = math.radians
+    yaw32 = tuple(float(v) for v in np.float32(yaw_to_quaternion(np.array([2.0]))[0]))
+    arr = detections_to_arrays([
+        _det(quat=_quat_from_rpy(deg(30), 0.0, 0.4), det_id="rolled"),
+        _det(quat=_quat_from_rpy(0.0, deg(-2.0), -1.0), det_id="pitched"),
+        _det(quat=_quat_from_rpy(deg(0.9), deg(-0.9), 3.0), det_id="within tolerance"),
+        _det(quat=yaw32, det_id="float32 upright"),
+        _det(quat=_quat_from_rpy(deg(45), 0.0, 0.0), size=(0.0, 1.0, 1.0), det_id="invalid"),
+    ])
+    assert arr.valid.tolist() == [True, True, True, True, False]
+    np.testing.assert_allclose(arr.boxes[:4, 6], [0.4, -1.0, 3.0, 2.0], atol=1e-6)
+    np.testing.assert_allclose(arr.tilt_deg(), [30.0, 2.0, 0.9, 0.0, 45.0], atol=1e-6)
+    assert TILT_TOLERANCE_DEG == 1.0
+    assert tilt_issue(arr) == ("2 of 5 boxes have roll/pitch up to 30.0 deg: only yaw is "
+                               "used (boxes are read as upright)")
+    assert tilt_issue(arr, "proposals", tolerance_deg=0.5).startswith(
+        "3 of 5 proposals have roll/pitch up to 30.0 deg")
+    upright = detections_to_arrays(arrays_to_detections(
+        Header(), np.array([[0, 0, 0, 1, 1, 1, 2.5]]), ["car"], [0.5]))
+    assert tilt_issue(upright) is None and tilt_issue(detections_to_arrays([])) is None
 
 
 @given(y=angle)

@@ -4,7 +4,7 @@ import math
 
 import numpy as np
 import pytest
-from lidar_quality_core.boxes import detections_to_arrays
+from lidar_quality_core.boxes import detections_to_arrays, tilt_issue
 from lidar_quality_core.detection_cdr import (CdrError, decode_detection_array,
                                               encode_detection_array, rescaled_scores)
 from rclpy.serialization import deserialize_message, serialize_message
@@ -59,6 +59,8 @@ def test_decode_equals_rclpy(seed):
     dec = decode_detection_array(serialize_message(msg))
     assert dec.header == msg.header
     assert_arrays_equal(dec.arrays, detections_to_arrays(msg))
+    # random orientations: the tilt warning, worded from the same arrays
+    assert tilt_issue(dec.arrays) == tilt_issue(detections_to_arrays(msg)) is not None
     assert dec.hyp_score.tolist() == [r.hypothesis.score for d in msg.detections
                                       for r in d.results]
 

@@ -302,6 +302,25 @@ def test_create_xyz_cloud_and_extras():
     assert xyz_intensity(create_xyz_cloud(None, xyz))[1] is None
 
 
+@pytest.mark.parametrize("code", [1, 2, 3, 4, 5, 6])
+def test_integer_coordinates_are_refused(code):
+    """x, y, z as integers (mm / cm in the drivers that do it) were read as metres."""
+    np_type = np.dtype(CODES[code][0])
+    cols = {"x": np.zeros(3, np.float32), "y": np.arange(3).astype(np_type),
+            "z": np.zeros(3, np.float32), "intensity": np.ones(3, np.uint8)}
+    msg = create_cloud(None, cols)
+    name = {1: "INT8", 2: "UINT8", 3: "INT16", 4: "UINT16", 5: "INT32", 6: "UINT32"}[code]
+    with pytest.raises(CloudFormatError, match=f"cloud field 'y' is {name}: x, y, z must be "
+                                               "FLOAT32 / FLOAT64 metres"):
+        xyz_intensity(msg)
+    from lidar_quality_core.pointcloud import check_xyz_fields
+
+    with pytest.raises(CloudFormatError, match=f"input/points field 'y' is {name}"):
+        check_xyz_fields(cloud_to_structured(msg).dtype, "input/points")
+    cols["y"] = cols["y"].astype(np.float64)  # float64 is fine (read as float32)
+    np.testing.assert_array_equal(xyz_intensity(create_cloud(None, cols))[0][:, 1], [0, 1, 2])
+
+
 def test_intensity_name_fallbacks():
     cols = {"x": np.zeros(2, np.float32), "y": np.zeros(2, np.float32),
             "z": np.zeros(2, np.float32), "reflectance": np.array([3, 4], np.uint8)}

@@ -331,3 +331,93 @@ def test_processor_bytes_output_equals_message_output(mode, min_conf, tmp_path):
         np.testing.assert_array_equal([getattr(e, field) for e in got.quality.detections],
                                       [getattr(e, field) for e in want.quality.detections])
     assert np.isnan(got.confidence).sum() == (mode == "threshold")  # the "tram" detection
+
+
+# ------------------------------------------------------------------ scores, roll / pitch
+def _with_hyp_score(msg, i, score):
+    msg.detections[i].results[0].hypothesis.score = float(score)
+    return msg
+
+
+@pytest.mark.parametrize("bad", [1.7, -0.3, 1e6])
+def test_detection_scores_outside_unit_range_are_not_scored(bad):
+    """A detection scoring 1.7 / -0.3 / 1e6 (logits, a bug) was scored like a probability
+    without a word; now it is invalid (NaN features), reported, and the others unchanged."""
+    cloud, dets, props = hand_messages()
+    fr = frame_features(cloud, _with_hyp_score(dets, 1, bad), props, LmdSettings())
+    assert fr.valid.tolist() == [True, False, True]
+    assert np.isnan(fr.features[1]).all()
+    assert fr.detections.reasons[1] == f"score {bad:.6g} outside [0, 1]"
+    assert fr.issues["scores"].startswith(
+        f"input/detections: 1 of 3 boxes score outside [0, 1] ({bad:.6g} .. {bad:.6g}; "
+        "the meta models take probabilities): not scored")
+    good = frame_features(*hand_messages(), LmdSettings())
+    np.testing.assert_array_equal(fr.features[[0, 2]], good.features[[0, 2]])
+    assert good.issues == {}
+
+
+@pytest.mark.parametrize("mode", ["threshold", "exact"])
+def test_proposal_scores_outside_unit_range_are_left_out(mode):
+    """A proposal scoring 1e6 entered the proposal statistics (threshold) or won NMS
+    (exact); now it belongs to no set, as an invalid proposal, and is reported."""
+    pts, inten, boxes, scores, labels, pboxes, pscores, plabels = hand_frame()
+    cloud, dets, props = hand_messages()
+    s = LmdSettings(proposal_mode=mode)
+    fr = frame_features(cloud, None if mode == "exact" else dets,
+                        _with_hyp_score(props, 3, 1e6), s)
+    keep = np.arange(len(pboxes)) != 3
+    want = frame_features(cloud, None if mode == "exact" else dets,
+                          dets_msg(pboxes[keep], pscores[keep],
+                                   [c for c, k in zip(plabels, keep) if k],
+                                   ids=[f"p{k}" for k in np.flatnonzero(keep)]), s)
+    np.testing.assert_array_equal(fr.features, want.features)
+    assert fr.detections.ids == want.detections.ids and "p3" not in fr.detections.ids
+    effect = ("left out of NMS and of every proposal set" if mode == "exact"
+              else "left out of every proposal set")
+    assert fr.issues == {"scores": "input/proposals: 1 of 7 boxes score outside [0, 1] "
+                                   "(1e+06 .. 1e+06; the meta models take probabilities): "
+                                   + effect}
+
+
+def _rpy_quaternion(roll, pitch, yaw):
+    """x, y, z, w of R = Rz(yaw) Ry(pitch) Rx(roll) (written out, not the module's)."""
+    cr, sr = math.cos(roll / 2), math.sin(roll / 2)
+    cp, sp = math.cos(pitch / 2), math.sin(pitch / 2)
+    cy, sy = math.cos(yaw / 2), math.sin(yaw / 2)
+    return (sr * cp * cy - cr * sp * sy, cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy, cr * cp * cy + sr * sp * sy)
+
+
+def test_tilted_boxes_are_kept_and_reported():
+    """A box with 30 deg roll lost its roll without a word; it is still read as upright
+    with its yaw (the same features), and now reported."""
+    cloud, dets, props = hand_messages()
+    o = dets.detections[1].bbox.center.orientation
+    o.x, o.y, o.z, o.w = _rpy_quaternion(math.radians(30), 0.0, 0.3)
+    o = props.detections[0].bbox.center.orientation
+    o.x, o.y, o.z, o.w = _rpy_quaternion(0.0, math.radians(-2.5), 0.0)
+    fr = frame_features(cloud, dets, props, LmdSettings())
+    assert fr.valid.all()
+    upright = frame_features(*hand_messages(), LmdSettings())
+    np.testing.assert_allclose(fr.features, upright.features, rtol=1e-12, atol=1e-12)
+    assert fr.issues == {"roll_pitch": (
+        "input/proposals: 1 of 7 proposals have roll/pitch up to 2.5 deg: only yaw is used "
+        "(boxes are read as upright); input/detections: 1 of 3 detections have roll/pitch up "
+        "to 30.0 deg: only yaw is used (boxes are read as upright)")}
+    # the same from serialized input
+    dec = frame_features(cloud, decoded(dets), decoded(props), LmdSettings())
+    assert dec.issues == fr.issues
+
+
+def test_processor_reports_scores_and_tilt(threshold_models):
+    s, models = threshold_models
+    f = synthetic.synthetic_frame(n_points=20_000, n_objects=6, n_proposals=60, seed=2)
+    cloud, dets, props = frame_messages(f, 3)
+    _with_hyp_score(dets, 0, 1.7)
+    o = dets.detections[2].bbox.center.orientation
+    o.x, o.y, o.z, o.w = _rpy_quaternion(math.radians(30), 0.0, 0.0)
+    out = LmdProcessor(s, models).process(cloud, dets, props)
+    assert set(out.issues) == {"scores", "roll_pitch", "detections"}
+    assert "score 1.7 outside [0, 1]" in out.issues["detections"]
+    assert np.isnan(out.confidence[0]) and np.isfinite(out.confidence[1:]).all()
+    assert "up to 30.0 deg" in out.issues["roll_pitch"]

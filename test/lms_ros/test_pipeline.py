@@ -50,9 +50,21 @@ def test_settings_schema_and_class_map():
     (dict(min_segment_points=0), "min_segment_points"),
     (dict(sum_tolerance=-0.1), "sum_tolerance"),
     (dict(ring_field=""), "ring_field"),
+    (dict(width=100_000_000), "width must be <= 36000"),
+    (dict(width=36001), "0.01 deg"),
+    (dict(channels=1025), "channels must be <= 1024"),
+    (dict(channels=1024, width=8192), r"1024 x 8192 = 8388608 pixels exceeds 4194304"),
+    (dict(ring_field="intensity"), "ring_field 'intensity' names a coordinate / intensity"),
+    (dict(ring_field="z"), "ring_field 'z'"),
 ])
 def test_settings_validation(kw, word):
     with pytest.raises(ValueError, match=word):
+        LmsSettings(**kw).validate()
+
+
+def test_settings_bounds_accept_real_sensors():
+    for kw in (dict(channels=128, width=2048), dict(channels=64, width=36000),
+               dict(channels=1024, width=4096), dict(ring_field="intensity", use_ring=False)):
         LmsSettings(**kw).validate()
 
 
@@ -221,19 +233,67 @@ def test_ring_flip_and_elevation_rows(frames):
     top = decode(frame_cloud(f, p), _settings())
     np.testing.assert_array_equal(frame_metrics(inp, s).features,
                                   frame_metrics(top, _settings()).features)
-    # rings beyond the image are out of view, not errors
-    too_high = velodyne_ring + 32
-    res = frame_metrics(decode(cloud(f.xyz, p, ring=too_high), s), s)
-    assert (res.point_segment[too_high > 63] == -1).all()
-    assert (res.projection.row[too_high <= 63] == f.ring[too_high <= 63] - 32).all()
+    assert inp.ring_issue is None
     # without ring (use_ring off): rows from elevation bins of the fov
     s2 = LmsSettings(width=COLS, use_ring=False, fov_up_deg=2.5, fov_down_deg=-25.5)
     inp2 = decode(msg, s2)
-    assert inp2.ring is None
+    assert inp2.ring is None and inp2.ring_issue is None
     el = np.degrees(np.arcsin(f.xyz[:, 2] / np.linalg.norm(f.xyz, axis=1)))
     want = np.floor((2.5 - el) / (28.0 / 64)).astype(int)
     row = frame_metrics(inp2, s2).projection.row
     np.testing.assert_array_equal(row, want)
+
+
+def test_ring_outside_the_channels_falls_back_to_elevation_rows(frames):
+    """Rings beyond ``channels`` (e.g. a 128-beam ring numbering with channels 64): the
+    frame takes the elevation rows, as with use_ring off, and says why (before: the
+    out-of-range half of the points silently got no segment)."""
+    f = frames[0]
+    p = noisy_probs(f, 8)
+    s = LmsSettings(width=COLS, fov_up_deg=2.5, fov_down_deg=-25.5)
+    no_ring = LmsSettings(width=COLS, use_ring=False, fov_up_deg=2.5, fov_down_deg=-25.5)
+    too_high = (63 - f.ring.astype(np.int64)) + 32
+    inp = decode(cloud(f.xyz, p, ring=too_high), s)
+    assert inp.ring is None
+    assert "'ring' holds 32..95" in inp.ring_issue and "outside [0, channels=64)" in inp.ring_issue
+    assert f"{np.count_nonzero(too_high > 63)} of {len(f.xyz)}" in inp.ring_issue
+    want = frame_metrics(decode(cloud(f.xyz, p), no_ring), no_ring)
+    got = frame_metrics(inp, s)
+    np.testing.assert_array_equal(got.projection.row, want.projection.row)
+    np.testing.assert_array_equal(got.point_segment, want.point_segment)
+    assert (got.point_segment[too_high > 63] >= 0).mean() > 0.9
+    # a sentinel ring on points without a return (NaN) is no reason to drop the ring
+    xyz = f.xyz.astype(np.float32).copy()
+    ring = 63 - f.ring.astype(np.int64)
+    xyz[:10] = np.nan
+    ring[:10] = 255
+    inp = decode(cloud(xyz, p, ring=ring), s)
+    assert inp.ring_issue is None
+    np.testing.assert_array_equal(inp.ring[10:], f.ring[10:])
+
+
+@pytest.mark.parametrize("kind", ["float", "count2", "negative"])
+def test_ring_field_that_is_no_beam_index_falls_back(frames, kind):
+    """``ring_field`` naming a float field (e.g. ``ring_field: range``), a multi-value
+    field or one with negative values: elevation rows plus the reason; before, the float
+    and count-2 cases dropped every frame with a CloudFormatError."""
+    f = frames[0]
+    p = noisy_probs(f, 8)
+    rng = np.linalg.norm(f.xyz, axis=1).astype(np.float32)
+    extra = {"float": {"range": rng},
+             "count2": {"range": np.stack([f.ring, f.ring], axis=1).astype(np.uint16)},
+             "negative": {"range": f.ring.astype(np.int16) - 1}}[kind]
+    s = LmsSettings(width=COLS, ring_field="range", ring_zero_top=True)
+    inp = decode(cloud(f.xyz, p, extra=extra), s)
+    assert inp.ring is None
+    assert "ring field 'range'" in inp.ring_issue and "use_ring: false" in inp.ring_issue
+    want = {"float": "(float32) is not one integer", "count2": "(count 2) is not one",
+            "negative": "holds -1..62"}[kind]
+    assert want in inp.ring_issue
+    no_ring = LmsSettings(width=COLS, use_ring=False)
+    np.testing.assert_array_equal(frame_metrics(inp, s).projection.row,
+                                  frame_metrics(decode(cloud(f.xyz, p), no_ring),
+                                                no_ring).projection.row)
 
 
 def test_organized_cloud_and_empty_cloud():
@@ -329,6 +389,30 @@ def test_processor_bad_probabilities_and_issues(frames, models):
     assert lab[200] == NO_LABEL and (lab[:100] == p[:100].argmax(axis=1)).all()
     conf = read_fields(out.points, ["confidence"])[:, 0]
     assert np.isnan(conf[200])
+
+
+def test_processor_reports_an_unused_ring_field(frames, models):
+    f = frames[0]
+    p = noisy_probs(f, 10)
+    out = LmsProcessor(_settings(channels=32), models).process(frame_cloud(f, p))
+    assert set(out.issues) == {"ring"}
+    assert "outside [0, channels=32)" in out.issues["ring"]
+    assert out.result.n_segments > 0
+
+
+@pytest.mark.parametrize("dtype", [np.int16, np.int32, np.uint16])
+def test_integer_coordinates_are_refused(frames, dtype):
+    """x, y, z in mm as INT16 / INT32 (as some drivers publish them) were read as metres:
+    a cloud 1000x too large, without a word."""
+    f = frames[0]
+    p = noisy_probs(f, 6)
+    mm = np.rint(f.xyz * 1000).clip(-32768, 32767).astype(dtype)
+    cols = {"x": mm[:, 0], "y": mm[:, 1], "z": mm[:, 2]}
+    msg = cloud(np.zeros((len(mm), 3)), p, extra=cols)
+    name = {np.int16: "INT16", np.int32: "INT32", np.uint16: "UINT16"}[dtype]
+    with pytest.raises(CloudFormatError, match=f"input/points field 'x' is {name}: x, y, z "
+                                               "must be FLOAT32 / FLOAT64 metres"):
+        decode(msg, _settings())
 
 
 def test_processor_refuses_other_class_map(models):
