@@ -17,20 +17,41 @@ no rclpy).
   loaded through ``model_store`` with the node's feature schema. Outputs are clipped to
   [0, 1]; a row whose features are all NaN (an invalid input the feature code flags) gets
   NaN, never a silent score.
+* Training settings (``SETTING_RULES``): a feature schema does not say how the features
+  were computed (LMD ``exact`` and ``threshold`` share one schema; a reordered class list
+  keeps it). So ``MetaModels(..., settings=, method=)`` compares the settings the
+  trainers record in the manifests (LMD / LMS ``training_data["settings"]``, MIMO
+  ``training_data["merge_settings"]``) with the settings in use, before loading. What
+  changes the meaning of a feature must be equal, or the model is refused with the
+  setting, both values and the fix: LMD ``proposal_mode``, ``class_names`` (in order),
+  ``class_score_features``; LMS ``class_names``, image geometry (``channels``, ``width``,
+  ``fov_up_deg``, ``fov_down_deg``), ``min_segment_points``; MIMO ``use_points``,
+  ``class_names``, the merge's input convention (``score_type``, ``background_index``)
+  and yaw ETV (``yaw_deviation``). What only shifts the feature distribution warns,
+  naming both values: LMD thresholds of the mode in use; LMS ``use_ring``,
+  ``sum_tolerance``; MIMO ``num_heads``, ``eps``, ``voting``, ``min_cluster_size``,
+  ``class_aware``, ``temperature``, ``yaw_variance``. Not compared: input conventions
+  that the settings undo (LMS ``ring_field``, ``ring_zero_top``) and MIMO ``dbscan``
+  (two implementations, same clusters). A manifest without recorded settings (an older
+  model) loads with a warning that it cannot be checked.
 """
 from __future__ import annotations
 
+import dataclasses
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from . import metrics as M
-from .model_store import LoadedModel, ModelStoreError, load_model, save_model
+from .model_store import (LoadedModel, ModelStoreError, ModelStoreWarning, SettingRule,
+                          check_training_settings, load_model, read_manifest, save_model)
 
 __all__ = ["KINDS", "TASKS", "make_estimator", "fit_estimator", "predict", "group_folds",
            "FoldMetrics", "CVResult", "cross_validate", "GreedyResult", "greedy_selection",
+           "SETTINGS_SECTION", "SETTING_RULES", "settings_record", "check_settings",
            "MetaModels", "save_pair"]
 
 KINDS = ("xgboost", "gradient_boosting", "linear", "random_forest", "mlp")
@@ -263,15 +284,156 @@ def greedy_selection(X, y, names: Sequence[str], groups, *, task: str, kind: str
                         "auroc" if task == "classification" else "r2", full, trace)
 
 
+# ------------------------------------------------------------------ training settings
+#: Where each method's trainer records its settings in ``training_data``.
+SETTINGS_SECTION = {"lmd": "settings", "lms": "settings", "mimo": "merge_settings"}
+
+
+def _lmd_rules() -> tuple[SettingRule, ...]:
+    def threshold(key, mode, option):
+        return SettingRule(key, exact=False, when=("proposal_mode", (mode,)),
+                           fix=f"set {key} to {{model}}, or retrain with lmd-train "
+                               f"{option} {{current}}")
+
+    return (
+        SettingRule("proposal_mode",
+                    fix="set proposal_mode to {model}, or use models trained for {current} "
+                        "(lmd-train --modes; the shipped lmd_<mode>_* pair is chosen by "
+                        "proposal_mode when classifier_path and regressor_path are empty)"),
+        SettingRule("class_names",
+                    fix="set class_names to {model}: the class feature is the position in "
+                        "this list"),
+        SettingRule("class_score_features",
+                    fix="use models trained with class_score_features {current}"),
+        threshold("iou_threshold", "threshold", "--iou-threshold"),
+        threshold("proposal_score_threshold", "threshold", "--proposal-score-threshold"),
+        threshold("nms_iou_threshold", "exact", "--nms-iou-threshold"),
+        threshold("nms_score_threshold", "exact", "--nms-score-threshold"),
+    )
+
+
+def _lms_rules() -> tuple[SettingRule, ...]:
+    def geometry(key, option):
+        return SettingRule(key, fix=f"set {key} to {{model}} if that is your sensor's image, "
+                                    f"or retrain for it (lms-train {option} {{current}})")
+
+    return (
+        SettingRule("class_names",
+                    fix="set class_names to {model}, the models' class order (class c "
+                        "reads the probability field of class_names[c])"),
+        geometry("channels", "--channels"), geometry("width", "--width"),
+        geometry("fov_up_deg", "--fov-up"), geometry("fov_down_deg", "--fov-down"),
+        SettingRule("min_segment_points",
+                    fix="set min_segment_points to {model}, or retrain with lms-train "
+                        "--min-points {current}"),
+        SettingRule("use_ring", exact=False,
+                    fix="image rows from the ring field (true) or from the vertical field "
+                        "of view (false); set use_ring to {model} to match the training"),
+        SettingRule("sum_tolerance", exact=False, fix="set sum_tolerance to {model}"),
+    )
+
+
+#: The LMD own-box point features that ``use_points`` adds to the MIMO schema.
+_MIMO_POINT_FEATURES = ("points", "points_frac", "refl_max", "refl_mean", "refl_std")
+
+
+def _mimo_uses_points(manifest: Mapping[str, Any]) -> bool:
+    # From the schema, not the record: mimo-train before issue 14 wrote the dataset's
+    # use_points (always true) into the manifests of both pairs.
+    return set(_MIMO_POINT_FEATURES) <= set(manifest.get("feature_names") or ())
+
+
+def _mimo_rules() -> tuple[SettingRule, ...]:
+    def merge(key, exact=False, fix=None):
+        return SettingRule(f"merge.{key}", exact=exact, fix=fix or f"set {key} to {{model}}")
+
+    retrain = "the model comes from other merge code: retrain it with mimo-train"
+    return (
+        SettingRule("use_points", model_value=_mimo_uses_points,
+                    fix="set use_points to {model}, or use the pair with the feature "
+                        "schema of use_points {current} (the shipped mimo_* / mimo_points_* "
+                        "pair is chosen by use_points when classifier_path and "
+                        "regressor_path are empty)"),
+        SettingRule("class_names",
+                    fix="set class_names to {model}: the class feature is the position in "
+                        "this list"),
+        merge("score_type", True, retrain), merge("background_index", True, retrain),
+        merge("yaw_deviation", True, retrain),
+        SettingRule("num_heads", exact=False,
+                    fix="set num_heads to {model}, or retrain on bags with this number of "
+                        "heads (mimo-train)"),
+        merge("eps"), merge("voting"),
+        merge("min_cluster_size", fix="set min_cluster_size to {model} (null: 0, from the "
+                                      "voting rule)"),
+        merge("class_aware"), merge("temperature"), merge("yaw_variance", fix=retrain),
+    )
+
+
+#: Per method: how its recorded training settings are compared with the settings in use
+#: (module docstring).
+SETTING_RULES: dict[str, tuple[SettingRule, ...]] = {
+    "lmd": _lmd_rules(), "lms": _lms_rules(), "mimo": _mimo_rules()}
+
+
+def _settings_dict(settings) -> dict:
+    if dataclasses.is_dataclass(settings) and not isinstance(settings, type):
+        return dataclasses.asdict(settings)
+    if isinstance(settings, Mapping):
+        return dict(settings)
+    raise TypeError(f"settings must be a dataclass or a mapping, got {type(settings).__name__}")
+
+
+def settings_record(settings, method: str) -> dict:
+    """``{section: settings}``: how a trainer of ``method`` records its settings in
+    ``training_data`` (JSON-normal), for :func:`check_settings` to find them."""
+    if method not in SETTINGS_SECTION:
+        raise ValueError(f"method must be one of {sorted(SETTINGS_SECTION)}, got {method!r}")
+    import json
+
+    return {SETTINGS_SECTION[method]: json.loads(json.dumps(_settings_dict(settings),
+                                                            default=str))}
+
+
+def check_settings(manifest: Mapping[str, Any], settings, method: str, *,
+                   name: str | None = None) -> list[str]:
+    """Compare a model's recorded training settings with ``settings`` (the pipeline's
+    settings dataclass or a mapping) by the rules of ``method`` (``lmd``, ``lms``,
+    ``mimo``). Raises ``ModelStoreError`` on a setting that must match; returns the
+    warnings (settings that differ but need not match, or that were not recorded)."""
+    if method not in SETTING_RULES:
+        raise ValueError(f"method must be one of {sorted(SETTING_RULES)}, got {method!r}")
+    return check_training_settings(manifest, _settings_dict(settings), SETTING_RULES[method],
+                                   section=SETTINGS_SECTION[method], name=name)
+
+
 class MetaModels:
     """Meta classifier (confidence) and meta regressor (predicted IoU) of one node.
 
     Both are loaded and verified through the model store against ``feature_names``;
-    any problem raises ``ModelStoreError`` naming the file and the reason.
+    any problem raises ``ModelStoreError`` naming the file and the reason. With
+    ``settings`` and ``method``, the training settings recorded in both manifests are
+    checked first (:func:`check_settings`): a mismatch that changes the features refuses
+    the models; the other findings are in ``warnings`` and go to ``warn`` (default: a
+    ``ModelStoreWarning``), once for the pair when both models say the same.
     """
 
-    def __init__(self, classifier_path, regressor_path, feature_names: Sequence[str]):
+    def __init__(self, classifier_path, regressor_path, feature_names: Sequence[str], *,
+                 settings=None, method: str | None = None,
+                 warn: Callable[[str], Any] | None = None):
         self.feature_names = tuple(feature_names)
+        self.warnings: list[str] = []
+        if settings is not None or method is not None:
+            if settings is None or method is None:
+                raise ValueError("settings and method go together")
+            self.warnings = _pair_warnings(
+                [(Path(p).name, check_settings(read_manifest(p), settings, method,
+                                               name=Path(p).name))
+                 for p in (classifier_path, regressor_path)])
+            for text in self.warnings:
+                if warn is not None:
+                    warn(text)
+                else:
+                    warnings.warn(text, ModelStoreWarning, stacklevel=2)
         self.classifier: LoadedModel = load_model(classifier_path,
                                                   expected_features=self.feature_names,
                                                   expected_task="classification")
@@ -304,6 +466,15 @@ class MetaModels:
             conf[ok] = np.clip(self.classifier.predict_confidence(Xo), 0.0, 1.0)
             iou[ok] = np.clip(self.regressor.predict_value(Xo), 0.0, 1.0)
         return conf, iou
+
+
+def _pair_warnings(found: list[tuple[str, list[str]]]) -> list[str]:
+    """One warning per finding: ``"<c>, <r>: ..."`` when both models report it."""
+    by_text: dict[str, list[str]] = {}
+    for name, texts in found:
+        for t in texts:
+            by_text.setdefault(t[len(name) + 2:], []).append(name)
+    return [f"{', '.join(names)}: {text}" for text, names in by_text.items()]
 
 
 def save_pair(out_dir, prefix: str, classifier, regressor, feature_names: Sequence[str], *,

@@ -27,6 +27,13 @@ The model bytes are read once and both hashed and deserialised from memory, so t
 cannot change between check and load. Library version differences only warn
 (:class:`ModelStoreWarning`).
 
+Training settings: a trainer records the settings that define the features (proposal
+mode, class list, image geometry, ...) in ``training_data`` (e.g.
+``training_data["settings"]``). :func:`check_training_settings` compares them with the
+settings a user runs, by a list of :class:`SettingRule` (which setting must be equal and
+which only warns, and the fix); ``meta_model.MetaModels`` holds the rules of the three
+methods and runs them before loading.
+
 Security: the hash proves integrity against the manifest, not authenticity (whoever can
 write both files can forge them). ``joblib`` files are pickles, i.e. code: load only
 trusted ones. The native XGBoost formats never touch pickle.
@@ -39,16 +46,18 @@ from __future__ import annotations
 
 import copy
 import hashlib
+import math
 import io
 import json
 import os
 import platform
 import tempfile
 import warnings
+from dataclasses import dataclass
 from datetime import datetime, timezone
 from importlib import metadata
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -59,6 +68,8 @@ __all__ = [
     "TASKS",
     "ModelStoreError",
     "ModelStoreWarning",
+    "SettingRule",
+    "check_training_settings",
     "LoadedModel",
     "manifest_path_for",
     "sha256_file",
@@ -392,6 +403,120 @@ def _xgb_info(model: Any, task: str, names: list[str], path: Path) -> dict[str, 
 def _xgb_num_class(booster: Any) -> int:
     cfg = json.loads(booster.save_config())
     return int(cfg["learner"]["learner_model_param"]["num_class"])
+
+
+# -- training settings -----------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SettingRule:
+    """How one training setting is compared with the setting in use.
+
+    ``key``: dotted path into the recorded settings (``"merge.eps"``) and into the
+    current ones. ``exact``: a difference refuses the model; otherwise it only warns.
+    ``fix``: what resolves a difference (``{model}`` / ``{current}`` are replaced by the
+    two values). ``when``: ``(key, values)``, the rule applies only while the current
+    setting ``key`` is one of ``values`` (e.g. a threshold of one proposal mode).
+    ``model_value``: takes the model's value from the whole manifest instead of the
+    recorded settings (for a setting the feature schema already fixes).
+    """
+
+    key: str
+    exact: bool = True
+    fix: str = ""
+    when: tuple[str, tuple] | None = None
+    model_value: Callable[[Mapping[str, Any]], Any] | None = None
+
+
+_MISSING = object()
+
+
+def _lookup(d: Any, key: str) -> Any:
+    for part in key.split("."):
+        if not isinstance(d, Mapping) or part not in d:
+            return _MISSING
+        d = d[part]
+    return d
+
+
+def _plain(v: Any) -> Any:
+    """JSON-normal form (tuples -> lists, numpy scalars -> Python) for comparing."""
+    return json.loads(json.dumps(v, default=_json_default))
+
+
+def _same(a: Any, b: Any) -> bool:
+    if isinstance(a, bool) or isinstance(b, bool):
+        return a is b
+    if isinstance(a, (int, float)) and isinstance(b, (int, float)):
+        return math.isclose(a, b, rel_tol=1e-9, abs_tol=1e-12)
+    if isinstance(a, list) and isinstance(b, list):
+        return len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+def _show(v: Any) -> str:
+    return json.dumps(v) if not isinstance(v, str) else repr(v)
+
+
+def check_training_settings(
+    manifest: Mapping[str, Any],
+    current: Mapping[str, Any],
+    rules: Sequence[SettingRule],
+    *,
+    section: str = "settings",
+    name: str | None = None,
+) -> list[str]:
+    """Compare the training settings recorded in ``manifest["training_data"][section]``
+    with ``current`` by ``rules``.
+
+    Raises :class:`ModelStoreError` naming every ``exact`` setting that differs (model
+    value, current value, fix). Returns warnings (no raise): the settings that differ
+    but need not match, and settings the manifest does not record (an older model: they
+    cannot be checked).
+    """
+    name = name or str(manifest.get("model_file", "model"))
+    recorded = (manifest.get("training_data") or {}).get(section)
+    current = _plain(dict(current))
+    errors: list[str] = []
+    warns: list[str] = []
+    unrecorded: list[str] = []
+    for rule in rules:
+        if rule.when is not None:
+            wkey, values = rule.when
+            if _lookup(current, wkey) not in values:
+                continue
+        if rule.model_value is not None:
+            model = rule.model_value(manifest)
+        elif isinstance(recorded, Mapping):
+            model = _lookup(recorded, rule.key)
+        else:
+            model = _MISSING
+        if model is _MISSING:
+            unrecorded.append(rule.key)
+            continue
+        cur = _lookup(current, rule.key)
+        model = _plain(model)
+        if cur is _MISSING or _same(model, cur):
+            continue
+        fix = rule.fix.format(model=_show(model), current=_show(cur))
+        # the last part names the parameter (merge.voting -> the node's "voting")
+        text = (f"{rule.key.rsplit('.', 1)[-1]}: model trained with {_show(model)}, "
+                f"node set to {_show(cur)}")
+        if rule.exact:
+            errors.append(text + (f" (fix: {fix})" if fix else ""))
+        else:
+            warns.append(f"{name}: {text}; its confidence and IoU are calibrated for "
+                         f"{_show(model)}" + (f" ({fix})" if fix else ""))
+    if errors:
+        raise ModelStoreError(f"{name}: trained with other settings than the node's: "
+                              + "; ".join(errors))
+    if unrecorded:
+        what = ("records no training settings (an older model)"
+                if not isinstance(recorded, Mapping) else "does not record them")
+        warns.append(f"{name}: cannot check {', '.join(unrecorded)} against the settings "
+                     f"in use: the manifest {what}; a mismatch would go unnoticed "
+                     "(retrain to record them)")
+    return warns
 
 
 # -- loading ---------------------------------------------------------------------------

@@ -146,7 +146,10 @@ class LmdNode(QualityNode):
                         "models/lmd/lmd_<proposal_mode>_regressor.joblib.",
                         read_only=True) or str(dr)
         try:
-            return MetaModels(cpath, rpath, self.settings.feature_names())
+            # the recorded training settings first: exact and threshold share a schema
+            return MetaModels(cpath, rpath, self.settings.feature_names(),
+                              settings=self.settings, method="lmd",
+                              warn=self.get_logger().warning)
         except Exception as exc:  # noqa: BLE001 - any load failure refuses the start
             raise RuntimeError(f"cannot load the LMD meta models for proposal_mode "
                                f"'{mode}' ({len(self.settings.feature_names())} features): "

@@ -144,7 +144,8 @@ class LmsNode(QualityNode):
                         "models/lms/lms_regressor.joblib.", read_only=True) or str(dr)
         names = self.settings.metric_names()
         try:
-            return MetaModels(cpath, rpath, names)
+            return MetaModels(cpath, rpath, names, settings=self.settings, method="lms",
+                              warn=self.get_logger().warning)
         except Exception as exc:  # noqa: BLE001 - any load failure refuses the start
             hint = (" (class_names must be the class map the models were trained with)"
                     if "schema" in str(exc) else "")

@@ -145,7 +145,9 @@ class MimoNode(QualityNode):
                         "models/mimo/mimo[_points]_regressor.joblib.")
         dc, dr = default_model_paths(self.settings.use_points)
         try:
-            return MetaModels(cpath or dc, rpath or dr, self.settings.feature_names())
+            return MetaModels(cpath or dc, rpath or dr, self.settings.feature_names(),
+                              settings=self.settings, method="mimo",
+                              warn=self.get_logger().warning)
         except Exception as exc:  # noqa: BLE001 - any load problem refuses the start
             raise RuntimeError(f"mimo_node: cannot load its meta models: {exc} (set "
                                "classifier_path / regressor_path, or ship the models in "

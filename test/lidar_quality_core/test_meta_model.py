@@ -75,3 +75,82 @@ def test_meta_models_pair(tmp_path):
         mm.MetaModels(cpath, rpath, names[::-1])
     with pytest.raises(ModelStoreError, match="task"):
         mm.MetaModels(rpath, cpath, names)
+
+
+LMD = {"proposal_mode": "threshold", "iou_threshold": 0.5, "proposal_score_threshold": 0.0,
+       "nms_iou_threshold": 0.1, "nms_score_threshold": 0.1,
+       "class_names": ["car", "truck", "pedestrian", "cyclist"], "class_score_features": False}
+
+
+@pytest.fixture(scope="module")
+def pairs(tmp_path_factory):
+    """A real xgboost pair saved with LMD settings recorded, and one without (older)."""
+    X, y, iou, _ = _data(200)
+    names = [f"f{i}" for i in range(5)]
+    clf = mm.fit_estimator("xgboost", "classification", X, y)
+    reg = mm.fit_estimator("xgboost", "regression", X, iou)
+    root = tmp_path_factory.mktemp("setting_pairs")
+    return names, {
+        "recorded": mm.save_pair(root / "recorded", "lmd_threshold", clf, reg, names,
+                                 training_data=mm.settings_record(LMD, "lmd")),
+        "older": mm.save_pair(root / "older", "lmd_threshold", clf, reg, names)}
+
+
+def test_meta_models_refuse_other_training_settings(pairs):
+    names, p = pairs
+    for change, expect in (({"proposal_mode": "exact"},
+                            "proposal_mode: model trained with 'threshold', node set to "
+                            "'exact'"),
+                           ({"class_names": ["truck", "car", "pedestrian", "cyclist"]},
+                            'class_names: model trained with ["car", "truck", "pedestrian", '
+                            '"cyclist"], node set to ["truck", "car", "pedestrian", '
+                            '"cyclist"]')):
+        with pytest.raises(ModelStoreError) as e:
+            mm.MetaModels(*p["recorded"], names, settings={**LMD, **change}, method="lmd")
+        assert expect in str(e.value) and "fix: set" in str(e.value)
+    # without settings only the schema is checked (the nodes always pass them)
+    mm.MetaModels(*p["recorded"], names)
+
+
+def test_meta_models_warn_once_per_pair(pairs):
+    names, p = pairs
+    got = []
+    pair = mm.MetaModels(*p["recorded"], names, method="lmd", warn=got.append,
+                         settings={**LMD, "iou_threshold": 0.6, "nms_iou_threshold": 0.3})
+    assert got == pair.warnings and len(got) == 1
+    assert got[0].startswith("lmd_threshold_classifier.joblib, "
+                             "lmd_threshold_regressor.joblib: iou_threshold: model trained "
+                             "with 0.5, node set to 0.6")
+    assert mm.MetaModels(*p["recorded"], names, settings=LMD, method="lmd").warnings == []
+
+
+def test_meta_models_without_recorded_settings_load_with_a_warning(pairs):
+    names, p = pairs
+    with pytest.warns(mm.ModelStoreWarning, match="cannot check proposal_mode.*records no "
+                                                  "training settings"):
+        pair = mm.MetaModels(*p["older"], names, settings=LMD, method="lmd")
+    assert pair.predict(np.zeros((1, 5)))[0].shape == (1,)
+
+
+def test_mimo_use_points_comes_from_the_feature_schema(tmp_path):
+    # mimo-train recorded the dataset's use_points (true) for both pairs: the schema decides
+    from lidar_quality_core.model_store import read_manifest
+
+    X, y, iou, _ = _data(200)
+    names = ["cluster_size", "score", "class", "distance", "head_fraction"]
+    clf = mm.fit_estimator("linear", "classification", X, y)
+    reg = mm.fit_estimator("linear", "regression", X, iou)
+    merge = {"score_type": "probabilities", "background_index": 0, "yaw_deviation": "wrapped"}
+    rec = {"merge_settings": {"use_points": True, "class_names": ["car"], "merge": merge}}
+    c, r = mm.save_pair(tmp_path, "mimo", clf, reg, names, training_data=rec)
+    current = {"use_points": False, "class_names": ["car"], "merge": merge}
+    assert mm.check_settings(read_manifest(c), current, "mimo") == [
+        "mimo_classifier.joblib: cannot check num_heads, merge.eps, merge.voting, "
+        "merge.min_cluster_size, merge.class_aware, merge.temperature, merge.yaw_variance "
+        "against the settings in use: the manifest does not record them; a mismatch would "
+        "go unnoticed (retrain to record them)"]
+    with pytest.raises(ModelStoreError, match="use_points: model trained with false, node "
+                                              "set to true"):
+        mm.check_settings(read_manifest(c), {**current, "use_points": True}, "mimo")
+    with pytest.raises(ValueError, match="method"):
+        mm.check_settings(read_manifest(c), current, "lmx")

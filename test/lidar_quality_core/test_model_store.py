@@ -19,6 +19,8 @@ from lidar_quality_core.model_store import (
     LoadedModel,
     ModelStoreError,
     ModelStoreWarning,
+    SettingRule,
+    check_training_settings,
     load_model,
     manifest_path_for,
     save_model,
@@ -546,3 +548,67 @@ def test_shipped_lms_model_for_another_class_count_is_refused(no_unpickle):
         msg = str(ei.value)
         assert path.name in msg and "feature schema mismatch" in msg
         assert "extra in model" in msg and settings.class_names[-1] in msg
+
+
+# -- training settings --------------------------------------------------------------------
+RULES = (SettingRule("mode", fix="set mode to {model}"),
+         SettingRule("classes"),
+         SettingRule("merge.eps", exact=False, fix="set eps to {model}"),
+         SettingRule("threshold", exact=False, when=("mode", ("a",))))
+RECORDED = {"mode": "a", "classes": ["car", "truck"], "merge": {"eps": 0.5},
+            "threshold": 0.3}
+
+
+def _with_settings(settings, section="settings"):
+    return {"model_file": "m.joblib", "training_data": {section: settings}}
+
+
+def test_training_settings_equal_give_no_finding():
+    current = {"mode": "a", "classes": ("car", "truck"), "merge": {"eps": 0.5 + 1e-15},
+               "threshold": 0.3, "unrelated": 1}
+    assert check_training_settings(_with_settings(RECORDED), current, RULES) == []
+
+
+def test_training_settings_exact_mismatch_refused_with_both_values_and_fix():
+    current = {**RECORDED, "mode": "b", "classes": ["truck", "car"]}
+    with pytest.raises(ModelStoreError) as e:
+        check_training_settings(_with_settings(RECORDED), current, RULES)
+    text = str(e.value)
+    assert text.startswith("m.joblib: trained with other settings than the node's: ")
+    assert "mode: model trained with 'a', node set to 'b' (fix: set mode to 'a')" in text
+    assert 'classes: model trained with ["car", "truck"], node set to ["truck", "car"]' in text
+
+
+def test_training_settings_other_values_warn():
+    current = {**RECORDED, "merge": {"eps": 0.7}, "threshold": 0.4}
+    found = check_training_settings(_with_settings(RECORDED), current, RULES)
+    assert len(found) == 2
+    assert found[0].startswith("m.joblib: eps: model trained with 0.5, node set to 0.7")
+    assert "(set eps to 0.5)" in found[0]
+    assert "threshold: model trained with 0.3, node set to 0.4" in found[1]
+    # the threshold rule applies only in mode "a"
+    rules = RULES[2:]
+    assert check_training_settings(_with_settings(RECORDED), {**current, "mode": "b"},
+                                   rules) == [found[0]]
+
+
+def test_training_settings_not_recorded_warn_that_they_cannot_be_checked():
+    found = check_training_settings({"model_file": "m.joblib", "training_data": {}},
+                                    RECORDED, RULES)
+    assert len(found) == 1
+    assert "cannot check mode, classes, merge.eps, threshold" in found[0]
+    assert "records no training settings" in found[0]
+    partial = check_training_settings(_with_settings({"mode": "a"}), RECORDED, RULES)
+    assert len(partial) == 1 and "cannot check classes, merge.eps, threshold" in partial[0]
+
+
+def test_training_settings_section_and_model_value():
+    manifest = {**_with_settings({"eps": 0.5}, "merge_settings"), "feature_names": ["a", "p"]}
+    rules = (SettingRule("eps"), SettingRule("uses_p", model_value=lambda m: "p" in
+                                             m["feature_names"]))
+    assert check_training_settings(manifest, {"eps": 0.5, "uses_p": True}, rules,
+                                   section="merge_settings") == []
+    with pytest.raises(ModelStoreError, match="uses_p: model trained with true, node set "
+                                              "to false"):
+        check_training_settings(manifest, {"eps": 0.5, "uses_p": False}, rules,
+                                section="merge_settings")

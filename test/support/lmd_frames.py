@@ -51,10 +51,12 @@ def iou_targets(boxes, gt_boxes):
     return np.nan_to_num(iou_bev(boxes, gt_boxes).max(axis=1), nan=0.0)
 
 
-def train_models(out_dir, settings, n_frames=6, seed=100):
+def train_models(out_dir, settings, n_frames=6, seed=100, record_settings=False):
     """Fit an XGBoost classifier (TP iff IoU_BEV >= 0.5) and regressor (IoU_BEV) on
     ``pipeline.frame_features`` of small synthetic frames and save them with
-    ``meta_model.save_pair`` as ``lmd_<mode>_*``; returns (classifier, regressor) paths."""
+    ``meta_model.save_pair`` as ``lmd_<mode>_*``; returns (classifier, regressor) paths.
+    ``record_settings``: record ``settings`` in the manifests as lmd-train does (else an
+    older manifest without them)."""
     from lidar_quality_core import meta_model
     from lmd_ros.pipeline import frame_features
 
@@ -70,7 +72,8 @@ def train_models(out_dir, settings, n_frames=6, seed=100):
     X, y = np.concatenate(X), np.concatenate(y)
     clf = meta_model.fit_estimator("xgboost", "classification", X, (y >= 0.5).astype(float))
     reg = meta_model.fit_estimator("xgboost", "regression", X, y)
+    training = {"source": "lidar_quality_core.synthetic", "frames": n_frames, "seed": seed}
+    if record_settings:
+        training.update(meta_model.settings_record(settings, "lmd"))
     return meta_model.save_pair(out_dir, f"lmd_{settings.proposal_mode}", clf, reg,
-                                settings.feature_names(),
-                                training_data={"source": "lidar_quality_core.synthetic",
-                                               "frames": n_frames, "seed": seed})
+                                settings.feature_names(), training_data=training)

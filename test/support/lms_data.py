@@ -46,3 +46,29 @@ def semantickitti_dir(root: Path, n_frames: int = 3, seed: int = 9, sequence: in
         p = seg.predict_proba(f.xyz, f.intensity).astype(np.float32)
         np.save(prob_dir / f"{i:06d}.npy", p)
     return root
+
+
+def train_node_models(out_dir: Path, frames, settings) -> tuple:
+    """Real LMS meta models for node tests: XGBoost fitted on the metrics and IoU_adj
+    targets of ``frames`` (simulated scans with noisy probabilities, ``lms_scans``) under
+    ``settings``, saved as ``out_dir/lms_{classifier,regressor}.joblib`` with ``settings``
+    recorded as ``lms-train`` records them. Returns the two paths."""
+    from lidar_quality_core import meta_model
+    from lms_ros.pipeline import decode, frame_metrics
+    from lms_ros.segment_metrics import segment_targets
+
+    from lms_scans import frame_cloud, frame_probs
+
+    X, y = [], []
+    for i, f in enumerate(frames):
+        res = frame_metrics(decode(frame_cloud(f, frame_probs(f, 100 * i)), settings), settings)
+        _, adj = segment_targets(res, f.semantic)
+        ok = np.isfinite(adj)
+        X.append(res.features[ok])
+        y.append(adj[ok])
+    X, y = np.concatenate(X), np.concatenate(y)
+    clf = meta_model.fit_estimator("xgboost", "classification", X, (y > 0).astype(int))
+    reg = meta_model.fit_estimator("xgboost", "regression", X, y)
+    return meta_model.save_pair(out_dir, "lms", clf, reg, settings.metric_names(),
+                                training_data={"source": "lms_scans frames",
+                                               **meta_model.settings_record(settings, "lms")})
