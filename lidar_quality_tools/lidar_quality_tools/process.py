@@ -110,7 +110,10 @@ def _models(node: str, params: dict, defaults, feature_names):
     paths = [params.get(k) or str(d) for k, d in zip(("classifier_path", "regressor_path"),
                                                      defaults)]
     try:
-        return MetaModels(*paths, feature_names)
+        # the recorded training settings too, as the node checks them
+        return MetaModels(*paths, feature_names, settings=node_settings(node, params),
+                          method=node, warn=lambda t: print(f"process_bag: {node}: warning: "
+                                                            f"{t}", file=sys.stderr))
     except Exception as exc:  # noqa: BLE001 - any load failure refuses the run
         raise UsageError(f"{node}: cannot load the meta models: {exc}") from exc
 
