@@ -12,8 +12,13 @@
    ``<out>/outputs`` and notes when every input and output arrived.
 4. :mod:`.evaluation` scores the recorded outputs against the ground truth; the report
    (``report.md``, ``summary.json``, PNG plots) goes to ``<out>``.
-5. A summary is printed. Exit code 1 if a node died, produced nothing, or a recorded
-   output did not match its input.
+5. A summary is printed; its first lines (and report.md's) give the verdict: which node
+   dropped frames, how many of how many, and the likely cause from the node's own
+   ``/diagnostics`` (processing time against the input period, frames dropped by
+   reason, input lost on the way). Exit codes: ``EXIT_CODES``.
+
+The pictures of one frame (bird's-eye boxes, segmentation) show the frame nearest the
+middle that every node answered; if there is none, the summary and the report say so.
 
 Latency: from the publication of a frame's last input by the player to the reception of
 the node's output by the recorder (the middleware's source and reception timestamps).
@@ -35,6 +40,23 @@ import numpy as np
 from lidar_quality_core.time_sync import stamp_of_bytes
 
 DEFAULT_DATA = Path("data/perception/demo")
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_DROPPED = 0, 1, 2, 3
+EXIT_CODES = f"""exit codes:
+  {EXIT_OK}  every node answered its frames (drops within --max-drop-fraction are said)
+  {EXIT_FAILED}  failed: a node died, produced nothing, or published an output that does not
+     match its input; or the nodes / the player did not run (before code {EXIT_DROPPED})
+  {EXIT_USAGE}  bad arguments (no perception bag at --bag)
+  {EXIT_DROPPED}  ran, but a node dropped more than --max-drop-fraction of its frames: the
+     summary's and report.md's first lines name the node, the frames dropped of how
+     many, and the likely cause"""
+#: what a node's ``dropped.<reason>`` diagnostics counter means
+DROP_REASONS = {
+    "overrun": "waiting frame(s) dropped because processing fell behind the input (overrun)",
+    "malformed_cloud": "frame(s) with a malformed input cloud",
+    "undecodable_input": "input message(s) that could not be decoded",
+    "invalid_stamp": "input message(s) with an invalid header stamp",
+    "processing_error": "frame(s) lost to a processing error (see the node log)",
+    "no_head": "frame(s) without a message of any head"}
 
 def wiring(num_heads: int = 2) -> dict:
     """node -> (parameter overrides, remaps input -> bag topic)."""
@@ -212,6 +234,11 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
             rec.close()
     published = {t: v["count"] for t, v in live["player"]["topics"].items()}
     pub_times = publish_times(bag, logs / "published.txt")
+    # the period the player keeps: the clouds' stamps at ``rate`` (its publish times
+    # jitter with the load, a few frames' median among them)
+    clouds = np.sort(np.fromiter(pub_times.get("/lidar/points", {}).keys(), float))
+    live["input_period_ms"] = round(float(np.median(np.diff(clouds))) / 1e6 / rate, 1) \
+        if len(clouds) > 1 else None
     for name, (_, remaps) in wire.items():
         inputs = list(remaps.values())
         main = f"/{name}/{NODES[name][1]}"  # the node's main output
@@ -227,7 +254,11 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
             "latency_ms_p99_steady": percentile(lat[WARMUP_FRAMES:], 99),
             "latency_ms_first_frames": [round(float(x), 1) for x in lat[:WARMUP_FRAMES]],
             "node_diagnostics": {k: v for k, v in diag_values[name].items()
-                                 if k.startswith(("dropped", "frames", "latency"))},
+                                 if k.startswith(("dropped", "frames", "latency", "received",
+                                                  "sync.", "processing_ms"))},
+            # the node's input name -> the bag topic on it and the messages published
+            "inputs": {k: {"topic": t, "published": published.get(t, 0)}
+                       for k, t in remaps.items()},
             "exit_code": codes[name], "log": str(logs / f"{name}_node.log")}
         live["nodes"][name]["_latencies"] = lat
     live["params"] = params
@@ -239,6 +270,116 @@ def _settings(params: dict):
     from .process import node_settings
 
     return node_settings("lms", params["lms"]), node_settings("mimo", params["mimo"])
+
+
+def _num(d: dict, *keys) -> float | None:
+    """The first of ``keys`` in ``d`` as a number (diagnostics values are strings)."""
+    for k in keys:
+        try:
+            return float(d[k])
+        except (KeyError, TypeError, ValueError):
+            continue
+    return None
+
+
+def likely_causes(v: dict, input_period_ms: float | None) -> list[str]:
+    """Why a node lost frames, from its ``/diagnostics`` (``v``: a node of the summary):
+    the CPU (frames dropped as overrun, or processing slower than the input period with
+    drops the node's reasons do not explain), its drop reasons, input lost before the
+    node, inputs not matched by stamp, outputs lost after it."""
+    d = v.get("node_diagnostics") or {}
+    if not d:
+        return [f"unknown: the node published no /diagnostics (see {v.get('log', 'its log')})"]
+    causes = []
+    reasons = {k.split(".", 1)[1]: int(n) for k, n in d.items()
+               if k.startswith("dropped.") and _num(d, k)}
+    p50, p99 = _num(d, "processing_ms_p50"), _num(d, "processing_ms_p99")
+    unexplained = v["frames_in"] - v["frames_out"] > sum(
+        n for r, n in reasons.items() if r != "overrun")
+    slow = p99 is not None and input_period_ms and p99 > input_period_ms and unexplained
+    if "overrun" in reasons or slow:
+        cpu = "CPU: processing " + (f"p50 {p50:.0f} ms / p99 {p99:.0f} ms" if p99 is not None
+                                    else "time unknown")
+        if input_period_ms:
+            cpu += f" against an input period of {input_period_ms:.0f} ms"
+        if "overrun" in reasons:
+            cpu += f"; {reasons.pop('overrun')} {DROP_REASONS['overrun']}"
+        causes.append(cpu)
+    causes += [f"{n} {DROP_REASONS.get(r, r)}" for r, n in sorted(reasons.items())]
+    ns = "/" + v["node"] if "node" in v else ""
+    for key, inp in (v.get("inputs") or {}).items():
+        got = _num(d, f"received.{key}", f"received.{inp['topic']}", f"received.{ns}/{key}")
+        if got is not None and got < inp["published"]:
+            causes.append(f"input lost on the way: received {got:.0f} of {inp['published']} "
+                          f"messages on {inp['topic']} ({key})")
+    for k, n in sorted(d.items()):
+        if k.startswith(("sync.late.", "sync.dropped.")) and _num(d, k):
+            kind, topic = k.split(".", 2)[1:]
+            causes.append(f"stamp matching: {n} message(s) on {topic} {kind} (inputs of a "
+                          "frame arrived too late or not at all)")
+    node_out = _num(d, "frames_out")
+    if node_out is not None and node_out > v["frames_out"]:
+        causes.append(f"outputs lost on the way: the node published {node_out:.0f}, the "
+                      f"recorder received {v['frames_out']}")
+    return causes or [f"none in the node's diagnostics (see {v.get('log', 'its log')})"]
+
+
+def verdict(nodes: dict, *, max_drop_fraction: float = 0.05,
+            input_period_ms: float | None = None) -> tuple[int, list[str]]:
+    """(exit code, lines) of a run from its nodes' figures (the summary's ``nodes``):
+    ``EXIT_FAILED`` when a node died, produced nothing or published mismatched outputs;
+    else ``EXIT_DROPPED`` when a node dropped more than ``max_drop_fraction`` of its
+    frames. Every drop is said, with its likely cause, whatever the code."""
+    failed, over, lines = [], [], []
+    for n, v in nodes.items():
+        why = []
+        if v.get("exit_code") != 0:
+            why.append(f"exited with {v.get('exit_code')}")
+        if not v["frames_out"]:
+            why.append("produced nothing")
+        if v.get("mismatched"):
+            why.append(f"published {v['mismatched']} output(s) that do not match their input")
+        if why:
+            failed.append(n)
+            lines.append(f"FAILED: {n}_node {', '.join(why)} (log {v.get('log', '-')})")
+    for n, v in nodes.items():
+        f_in, f_out = v["frames_in"], v["frames_out"]
+        dropped = f_in - f_out
+        own = _num(v.get("node_diagnostics") or {}, "dropped") or 0
+        if dropped <= 0 and not own:
+            continue
+        causes = "; ".join(likely_causes({"node": n, **v}, input_period_ms))
+        if dropped <= 0:
+            lines.append(f"note: {n}_node answered all {f_in} frames, but its diagnostics "
+                         f"count {own:.0f} dropped: {causes}")
+            continue
+        frac = dropped / f_in if f_in else 1.0
+        if frac > max_drop_fraction:
+            over.append(n)
+            head = (f"FRAMES DROPPED: {n}_node dropped {dropped} of {f_in} frames ({frac:.1%} "
+                    f"> {max_drop_fraction:.1%} allowed)")
+        else:
+            head = (f"note: {n}_node dropped {dropped} of {f_in} frames ({frac:.1%}, within "
+                    f"the {max_drop_fraction:.1%} allowed)")
+        lines.append(f"{head}; likely cause: {causes}")
+    code = EXIT_FAILED if failed else EXIT_DROPPED if over else EXIT_OK
+    if code == EXIT_OK and not lines:
+        lines.append("OK: every node answered every frame (0 dropped)")
+    elif code == EXIT_OK:
+        lines.append(f"OK: no node dropped more than {max_drop_fraction:.1%} of its frames")
+    return code, lines
+
+
+def picture_note(ev) -> str:
+    """Which frame the pictures show, or that there is none (``ev``: the Evaluation)."""
+    if ev.example_frame is None:
+        return ("no frame was answered by every node: no bird's-eye or segmentation "
+                "picture")
+    if ev.example_frame == ev.example_target:
+        return f"pictures: frame {ev.example_frame} (the middle one; every node answered it)"
+    return (f"pictures: frame {ev.example_frame}, the nearest to the middle frame "
+            f"{ev.example_target} that every node answered "
+            f"({ev.answered_by_all} of {ev.frames} frames were)")
 
 
 def write_report(out: Path, summary: dict, ev, live: dict) -> list[Path]:
@@ -296,16 +437,20 @@ def report_markdown(summary: dict, figs: list[Path]) -> str:
     from .evaluation import BASELINES
 
     s = summary
-    L = ["# Demo report", "",
-         f"Bag `{s['bag']}`: {s['frames']} frames replayed in real time (rate {s['rate']:g}) "
+    v = s["verdict"]
+    meaning = {EXIT_OK: "ok", EXIT_FAILED: "failed", EXIT_DROPPED: "frames dropped"}
+    L = ["# Demo report", "", f"**Exit code {v['exit_code']} "
+         f"({meaning.get(v['exit_code'], '?')})**", ""]
+    L += [f"- {x}" for x in v["lines"] + [v["pictures"]]] + [""]
+    L += [f"Bag `{s['bag']}`: {s['frames']} frames replayed in real time (rate {s['rate']:g}) "
          f"into lmd_node, lms_node and mimo_node (separate processes, `use_sim_time`), "
          f"outputs recorded to `{s['outputs_bag']}` and evaluated against the ground truth.",
          "", "## Frames and latency", "",
          markdown_table(["node", "frames in", "frames out", "dropped", "latency p50 [ms]",
                          "latency p99 [ms]", f"p99 after frame {WARMUP_FRAMES} [ms]", "exit"],
-                        [[n, str(v["frames_in"]), str(v["frames_out"]), str(v["dropped"]),
+                        [[n, v["frames_in"], v["frames_out"], v["dropped"],
                           v["latency_ms_p50"], v["latency_ms_p99"], v["latency_ms_p99_steady"],
-                          str(v["exit_code"])]
+                          v["exit_code"]]
                          for n, v in s["nodes"].items()],
                         digits=1),
          "Latency: from the publication of a frame's last input (bag player) to the "
@@ -315,7 +460,7 @@ def report_markdown(summary: dict, figs: list[Path]) -> str:
          "## Quality of the recorded estimates", "",
          markdown_table(["node", "rows", "AUROC", "AUROC baseline", "ECE", "ECE baseline", "R²",
                          "baseline"],
-                        [[n, str(v["n"]), v["auroc"], v["auroc_baseline"], v["ece"], v["ece_baseline"],
+                        [[n, v["n"], v["auroc"], v["auroc_baseline"], v["ece"], v["ece_baseline"],
                           v["r2"], BASELINES[n]] for n, v in s["nodes"].items()]),
          "Rows: LMD detections, LMS segments with a defined IoU_adj, MIMO merged boxes. "
          "True positive: LMD BEV IoU >= 0.5 with any ground-truth box; MIMO with one of "
@@ -329,6 +474,8 @@ def report_markdown(summary: dict, figs: list[Path]) -> str:
 
 def print_summary(s: dict) -> None:
     print(f"\ndemo: {s['frames']} frames of {s['bag']}; report {s['report']}")
+    for line in s["verdict"]["lines"] + [s["verdict"]["pictures"]]:
+        print(f"demo: {line}")
     print(f"{'node':5s} {'in':>5s} {'out':>5s} {'drop':>5s} {'p50 ms':>7s} {'p99 ms':>7s} "
           f"{'steady':>7s} {'AUROC':>6s} {'(base)':>7s} {'ECE':>6s} {'(base)':>7s} {'R2':>6s}  baseline")
 
@@ -350,18 +497,24 @@ def main(argv=None) -> int:
 
     from .evaluation import evaluate
 
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=EXIT_CODES,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--bag", type=Path, default=DEFAULT_DATA,
                     help="perception bag, or a folder of them (the first is used)")
     ap.add_argument("--out", type=Path, default=Path("out/demo"))
     ap.add_argument("--rate", type=float, default=1.0, help="playback speed")
+    ap.add_argument("--max-drop-fraction", type=float, default=0.05, metavar="F",
+                    help=f"exit {EXIT_DROPPED} when a node drops more than this fraction of its "
+                    "frames (default 0.05; every drop is reported)")
     a = ap.parse_args(argv)
+    if not 0 <= a.max_drop_fraction <= 1:
+        ap.error(f"--max-drop-fraction {a.max_drop_fraction}: expected a fraction in [0, 1]")
     try:
         bag = resolve_bags([a.bag])[0]
     except (ValueError, FileNotFoundError, IndexError) as e:
         print(f"demo: no perception bag at {a.bag} ({e}); `make demo` generates it "
               "(make data/perception/demo/.done)", file=sys.stderr)
-        return 2
+        return EXIT_USAGE
     if not os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE"):
         print("demo: warning: FASTRTPS_DEFAULT_PROFILES_FILE is unset (run through "
               "scripts/with_env.sh): large clouds may be lost between processes", file=sys.stderr)
@@ -375,7 +528,7 @@ def main(argv=None) -> int:
         live = run_live(bag, out, rate=a.rate)
     except RuntimeError as e:
         print(f"demo: FAILED: {e}", file=sys.stderr)
-        return 1
+        return EXIT_FAILED
     print("demo: evaluating the recorded outputs against the ground truth", flush=True)
     lms_s, mimo_s = _settings(live["params"])
     ev = evaluate(bag, out / "outputs", lms_settings=lms_s, mimo_settings=mimo_s)
@@ -384,19 +537,26 @@ def main(argv=None) -> int:
                "outputs_bag": str(out / "outputs"), "report": str(out / "report.md"),
                "player": {k: live["player"][k] for k in ("achieved_rate", "late_ms_p99",
                                                          "wall_s")},
-               "nodes": {n: {**{k: v for k, v in live["nodes"][n].items()
-                                if not k.startswith("_")}, **q[n]} for n in live["nodes"]}}
+               "input_period_ms": live["input_period_ms"],
+               # frames in / out as played and recorded (the evaluation's: frames_scored)
+               "nodes": {n: {**q[n], "frames_scored": q[n]["frames_out"],
+                             **{k: v for k, v in live["nodes"][n].items()
+                                if not k.startswith("_")}} for n in live["nodes"]}}
+    code, lines = verdict(summary["nodes"], max_drop_fraction=a.max_drop_fraction,
+                          input_period_ms=live["input_period_ms"])
+    summary["verdict"] = {"exit_code": code, "max_drop_fraction": a.max_drop_fraction,
+                          "lines": lines, "pictures": picture_note(ev),
+                          "picture_frame": ev.example_frame}
     write_report(out, summary, ev, live)
     summary["elapsed_s"] = round(time.monotonic() - t0, 1)
     (out / "summary.json").write_text(json.dumps(jsonable(summary), indent=1))
     print_summary(summary)
-    failed = [n for n, v in summary["nodes"].items()
-              if v["exit_code"] != 0 or v["frames_out"] == 0 or v["mismatched"]]
-    if failed:
-        print(f"demo: FAILED for {failed} (died, produced nothing or mismatched outputs; "
-              "see the logs in " + str(out / "logs") + ")", file=sys.stderr)
-        return 1
-    return 0
+    if code != EXIT_OK:
+        what = "FAILED" if code == EXIT_FAILED else "frames dropped"
+        print(f"demo: exit {code} ({what}): " + " | ".join(
+            x for x in lines if not x.startswith(("note", "OK"))) +
+            f" (logs in {out / 'logs'})", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

@@ -1,16 +1,22 @@
 """The demo end to end on a 5-frame perception bag: node executables as processes with
 use_sim_time, bag_player replaying with /clock, outputs recorded and evaluated; the
-report, summary and plots written. And a bag that is not a perception bag: a clear
-failure, no hang."""
+report, summary and plots written. A bag whose middle cloud is malformed: LMD and LMS
+drop that frame, the demo says so first and exits 3, the pictures come from a frame
+every node answered; the exit-code decision on that run's figures. And a bag that is not
+a perception bag: a clear failure, no hang."""
+import copy
 import json
 import subprocess
 import sys
 
 import pytest
-from lidar_quality_ros.bag_io import bag_info
+from lidar_quality_ros.bag_io import BagWriter, bag_info, read_bag
 from lidar_quality_ros.load_test import NODES
+from lidar_quality_tools.demo import EXIT_DROPPED, EXIT_FAILED, EXIT_OK, verdict
 from perception_bags import simulated_perception_bags
+from rclpy.serialization import deserialize_message, serialize_message
 from reference_perception.cli import Perception
+from sensor_msgs.msg import PointCloud2
 
 N_FRAMES = 5
 
@@ -26,11 +32,25 @@ def demo(*args, timeout=600):
                           capture_output=True, text=True, timeout=timeout)
 
 
+def table_line(stdout: str) -> int:
+    return next(i for i, line in enumerate(stdout.splitlines()) if line.startswith("node "))
+
+
 def test_demo_end_to_end(bags, tmp_path):
     out = tmp_path / "demo"
-    r = demo("--bag", bags, "--out", out)
-    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    r = demo("--bag", bags, "--out", out, "--rate", 0.5)   # half speed: drops unlikely
     s = json.loads((out / "summary.json").read_text())
+    # 0 unless a node dropped a frame on a loaded machine: then 3, said first
+    dropped = [n for n, v in s["nodes"].items() if v["dropped"]]
+    assert r.returncode == (EXIT_DROPPED if dropped else EXIT_OK), r.stdout + r.stderr
+    head = r.stdout.splitlines()[:table_line(r.stdout)]   # the verdict before the table
+    for n in dropped:
+        assert any(x.startswith(f"demo: FRAMES DROPPED: {n}_node dropped "
+                                f"{s['nodes'][n]['dropped']} of {N_FRAMES} frames")
+                   for x in head), head
+    if not dropped:
+        assert any(x.startswith("demo: OK: ") for x in head), head
+    assert s["verdict"]["picture_frame"] is not None
     keys = {"frames_in", "frames_out", "dropped", "latency_ms_p50", "latency_ms_p99", "auroc",
             "auroc_baseline", "ece", "ece_baseline", "r2"}
     for node in ("lmd", "lms", "mimo"):
@@ -49,6 +69,97 @@ def test_demo_end_to_end(bags, tmp_path):
                 "lms_segmentation_frame", "latency"):
         assert (out / f"{png}.png").stat().st_size > 1000, png
         assert f"({png}.png)" in (out / "report.md").read_text()
+
+
+def malformed_middle_cloud(bag, dst):
+    """``bag`` with the middle frame's /lidar/points data buffer 7 bytes short."""
+    stamps = sorted({m.stamp_ns for m in read_bag(bag, {"/lidar/points"})})
+    with BagWriter(dst) as w:
+        for m in read_bag(bag):
+            raw = m.raw
+            if m.topic == "/lidar/points" and m.stamp_ns == stamps[N_FRAMES // 2]:
+                msg = deserialize_message(raw, PointCloud2)
+                msg.data = bytes(msg.data)[:len(msg.data) - 7]
+                raw = serialize_message(msg)
+            w.write(m.topic, m.msgtype, m.stamp_ns, raw)
+
+
+@pytest.fixture(scope="module")
+def dropped_run(bags, tmp_path_factory):
+    """The demo on a bag whose middle cloud LMD and LMS cannot read."""
+    root = tmp_path_factory.mktemp("dropped")
+    malformed_middle_cloud(bags / "seq_00", root / "seq_00")
+    out = root / "demo"
+    r = demo("--bag", root / "seq_00", "--out", out, "--rate", 0.5)
+    return r, out, json.loads((out / "summary.json").read_text())
+
+
+def test_dropped_frames_exit_3_and_are_said_first(dropped_run):
+    r, out, s = dropped_run
+    assert r.returncode == EXIT_DROPPED, r.stdout + r.stderr
+    nodes = s["nodes"]
+    for n in ("lmd", "lms"):
+        assert nodes[n]["dropped"] >= 1 and nodes[n]["exit_code"] == 0
+        assert nodes[n]["node_diagnostics"]["dropped.malformed_cloud"] == "1"
+    head = r.stdout.splitlines()[:table_line(r.stdout)]   # before the table
+    said = [x for x in head if x.startswith("demo: FRAMES DROPPED")]
+    assert {x.split()[3] for x in said} >= {"lmd_node", "lms_node"}
+    lmd = next(x for x in said if x.split()[3] == "lmd_node")
+    assert f"dropped {nodes['lmd']['dropped']} of {N_FRAMES} frames" in lmd
+    assert "likely cause: " in lmd and "1 frame(s) with a malformed input cloud" in lmd
+    assert "exit 3 (frames dropped)" in r.stderr and "lmd_node" in r.stderr
+    report = (out / "report.md").read_text()
+    assert report.index("Exit code 3") < report.index("lmd_node dropped") < report.index(
+        "## Frames and latency")
+    # the pictures: not the middle frame (LMD and LMS dropped it) but one all answered
+    assert s["verdict"]["picture_frame"] not in (None, N_FRAMES // 2)
+    assert "the nearest to the middle frame 2 that every node answered" in report
+    for png in ("lmd_bev_frame", "lms_segmentation_frame"):
+        assert (out / f"{png}.png").stat().st_size > 1000, png
+        assert f"({png}.png)" in report
+
+
+def test_exit_code_decision_on_the_recorded_run(dropped_run):
+    """``verdict`` on the figures of a real run: LMD and LMS dropped 1 of 5 frames (20 %)."""
+    _, _, s = dropped_run
+    nodes = s["nodes"]
+    worst = max(v["dropped"] / v["frames_in"] for v in nodes.values())
+    assert verdict(nodes)[0] == EXIT_DROPPED
+    code, lines = verdict(nodes, max_drop_fraction=worst)      # at the limit: passes
+    assert code == EXIT_OK and lines[-1].startswith("OK: no node dropped more than")
+    assert any(x.startswith("note: lmd_node dropped") and "malformed" in x for x in lines)
+    assert verdict(nodes, max_drop_fraction=0.19)[0] == EXIT_DROPPED
+    dead = copy.deepcopy(nodes)
+    dead["mimo"]["exit_code"] = -11                             # a crash comes before drops
+    code, lines = verdict(dead)
+    assert code == EXIT_FAILED and lines[0].startswith("FAILED: mimo_node exited with -11")
+
+
+def test_likely_cause_from_the_node_diagnostics(dropped_run):
+    """On MIMO's recorded figures (no drop), as if 2 frames had been lost: processing
+    slower than the input period is named, with the node's own times; messages the node
+    did not receive, and outputs the recorder did not, are named too."""
+    from lidar_quality_tools.demo import likely_causes
+
+    mimo = copy.deepcopy(dropped_run[2]["nodes"]["mimo"])
+    d = mimo["node_diagnostics"]
+    n = mimo["frames_in"] = mimo["frames_out"] = int(d["frames_out"])  # as the node saw it
+    for key, inp in mimo["inputs"].items():
+        inp["published"] = int(d[f"received.{key}"])
+    p99 = float(d["processing_ms_p99"])
+    assert likely_causes(mimo, p99 * 2) == [
+        f"none in the node's diagnostics (see {mimo['log']})"]
+    mimo["frames_out"] -= 2
+    cpu = likely_causes(mimo, p99 / 2)
+    assert cpu[0].startswith(f"CPU: processing p50 {float(d['processing_ms_p50']):.0f} ms / "
+                             f"p99 {p99:.0f} ms against an input period of {p99 / 2:.0f} ms")
+    d["received.input/head_1"] = str(mimo["inputs"]["input/head_1"]["published"] - 2)
+    causes = likely_causes(mimo, p99 * 2)
+    assert causes[0] == (f"input lost on the way: received {d['received.input/head_1']} of "
+                         f"{mimo['inputs']['input/head_1']['published']} messages on "
+                         "/perception/head_1 (input/head_1)")
+    assert causes[1] == (f"outputs lost on the way: the node published {n}, the recorder "
+                         f"received {n - 2}")
 
 
 def test_not_a_perception_bag(bags, tmp_path):
