@@ -52,7 +52,8 @@ from .model_store import (LoadedModel, ModelStoreError, ModelStoreWarning, Setti
 __all__ = ["KINDS", "TASKS", "make_estimator", "fit_estimator", "predict", "group_folds",
            "FoldMetrics", "CVResult", "cross_validate", "GreedyResult", "greedy_selection",
            "SETTINGS_SECTION", "SETTING_RULES", "settings_record", "check_settings",
-           "MetaModels", "save_pair"]
+           "MetaModels", "save_pair", "SIMULATED_DATA_DIR", "simulated_sources",
+           "cv_folds_arg", "cv_fold_count"]
 
 KINDS = ("xgboost", "gradient_boosting", "linear", "random_forest", "mlp")
 TASKS = ("classification", "regression")
@@ -160,6 +161,36 @@ def group_folds(groups, n_folds: int = 10, *, seed: int = 0):
     fold_of_group[order] = np.arange(uniq.size) % k
     fold = fold_of_group[np.searchsorted(uniq, groups)]
     return [(np.flatnonzero(fold != f), np.flatnonzero(fold == f)) for f in range(k)]
+
+
+def cv_folds_arg(text: str) -> int:
+    """``argparse`` type of the trainers' ``--cv-folds``: 0 (no cross validation) or >= 2."""
+    import argparse
+
+    try:
+        n = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if n != 0 and n < 2:
+        raise argparse.ArgumentTypeError(f"must be 0 (no cross validation) or >= 2, got {n}")
+    return n
+
+
+def cv_fold_count(groups, n_folds: int, *, what: str = "groups") -> int:
+    """The folds a grouped cross validation of ``n_folds`` runs on ``groups``: 0 for
+    ``n_folds`` 0 (none), else ``min(n_folds, distinct groups)``. Fewer than 2 groups
+    raise ``ValueError`` saying so and how to train anyway (``--cv-folds 0``)."""
+    n_folds = int(n_folds)
+    if n_folds == 0:
+        return 0
+    if n_folds < 2:
+        raise ValueError(f"cross validation folds must be 0 (none) or >= 2, got {n_folds}")
+    n = int(np.unique(np.asarray(groups)).size)
+    if n < 2:
+        raise ValueError(f"grouped cross validation needs at least 2 {what}, the training "
+                         f"data has {n}: train on more, or pass --cv-folds 0 to train "
+                         "without cross validation")
+    return min(n_folds, n)
 
 
 def _cls_metrics(y, p) -> dict[str, float]:
@@ -466,6 +497,28 @@ class MetaModels:
             conf[ok] = np.clip(self.classifier.predict_confidence(Xo), 0.0, 1.0)
             iou[ok] = np.clip(self.regressor.predict_value(Xo), 0.0, 1.0)
         return conf, iou
+
+
+# ------------------------------------------------------------------ training data
+#: Where ``make meta-data`` writes the simulated perception bags of a split:
+#: ``<split>/seq_NN``, and ``<split>/.done`` once the whole split is written.
+SIMULATED_DATA_DIR = Path(__file__).resolve().parents[2] / "data" / "perception"
+
+
+def simulated_sources(paths: Sequence) -> bool:
+    """True iff there are ``paths`` and each is a bag of a split that ``make meta-data``
+    simulated (``lidar_sim`` scenes through the reference perception): directly under
+    ``SIMULATED_DATA_DIR/<split>/`` with the split's ``.done`` marker. Model cards call
+    their data simulated only then."""
+    root = SIMULATED_DATA_DIR.resolve()
+    for p in paths:
+        try:
+            rel = Path(p).resolve().relative_to(root)
+        except ValueError:
+            return False
+        if len(rel.parts) != 2 or not (root / rel.parts[0] / ".done").is_file():
+            return False
+    return len(paths) > 0
 
 
 def _pair_warnings(found: list[tuple[str, list[str]]]) -> list[str]:

@@ -6,12 +6,18 @@ regressor (IoU_BEV) for every proposal mode and save them where the node looks f
 Per mode (``exact``, ``threshold``, ``none``: all three are shipped so that the node runs
 in every mode) the pair is fitted on all training rows and saved with
 ``meta_model.save_pair`` as ``lmd_<mode>_classifier.joblib`` / ``lmd_<mode>_regressor.joblib``
-with manifests (feature schema = ``LmdSettings.feature_names()``; training data: sources,
-frames, boxes, settings; metrics: grouped cross validation over the training sequences and,
-with held-out data, the held-out figures next to the detector score's). ``MODEL_CARD.md``
-in the output directory summarises data, features and held-out metrics. Seeds are fixed
-and estimators run single-threaded by default, so one command reproduces the models. The
+with manifests (feature schema = ``LmdSettings.feature_names()``; training data: sources
+(bag paths or the KITTI directory), frames, boxes, settings; metrics: grouped cross
+validation over the training sequences and, with held-out data, the held-out figures next
+to the detector score's). ``--cv-folds 0`` trains without cross validation (said in the
+manifests and the card); cross validation needs at least two sequences, so a single bag
+trains with ``--cv-folds 0`` (otherwise: an error saying so). ``MODEL_CARD.md`` in the
+output directory summarises data, features and metrics; it calls the data simulated only
+when it is the project's (``meta_model.simulated_sources``). Seeds are fixed and
+estimators run single-threaded by default, so one command reproduces the models. The
 pickles are zlib-compressed (joblib level 3: XGBoost pairs ~0.23 MB instead of ~0.97 MB).
+Bad data (no boxes, one class only, one sequence with cross validation) ends with a
+message and exit code 2, no traceback.
 """
 from __future__ import annotations
 
@@ -25,6 +31,7 @@ import numpy as np
 
 from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as M
+from lidar_quality_core.model_store import ModelStoreError
 
 from .dataset import (TP_IOU, LmdDataset, Progress, add_source_args, load_from_args,
                       settings_from_args)
@@ -86,23 +93,47 @@ def _sources(ds: LmdDataset) -> list[str]:
     return [s.get("group") or s.get("path") for s in ds.info.get("sources", [])]
 
 
+def _data(ds: LmdDataset) -> dict:
+    """Where ``ds`` comes from: ``{"sources": [bag or KITTI source dicts], "simulated":
+    bool}`` (the model card's data section)."""
+    src = [dict(s) for s in ds.info.get("sources", [])]
+    bags = [s["path"] for s in src if s.get("kind") == "perception_bag"]
+    return {"sources": src,
+            "simulated": len(bags) == len(src) and meta_model.simulated_sources(bags)}
+
+
+def _check_trainable(ds: LmdDataset, mode: str) -> None:
+    if not len(ds):
+        raise ValueError(f"mode {mode}: no scored box with ground truth in the training data "
+                         f"({ds.n_frames} frames, {ds.info.get('frames_without_gt', 0)} "
+                         "skipped without ground truth)")
+
+
 def train(train_sets: dict, test_sets: dict | None, out: Path, *, kind: str = "xgboost",
           seed: int = 0, n_jobs: int = 1, cv_folds: int = 4, command: str = "",
           progress: bool = True) -> dict:
     """Fit, evaluate and save one pair per mode of ``train_sets``; returns the metrics."""
     out = Path(out)
     results = {}
+    n_folds = {}
+    for mode, ds in train_sets.items():  # every mode's problem before any fit
+        _check_trainable(ds, mode)
+        n_folds[mode] = meta_model.cv_fold_count(ds.group, cv_folds, what="sequences (groups)")
     for mode, ds in train_sets.items():
+        folds = n_folds[mode]
         t0 = time.monotonic()
         if progress:
             sys.stderr.write(f"mode {mode}: {len(ds)} boxes, {ds.X.shape[1]} features\n")
-        bar = Progress(f"  grouped CV ({kind})", 2 * min(cv_folds, len(ds.groups)), progress)
-        cv = cv_metrics(ds, kind, n_folds=cv_folds, seed=seed, n_jobs=n_jobs,
-                        progress=lambda *_: bar.update())
-        bar.close()
+        cmet, rmet = {}, {}
+        if folds:
+            bar = Progress(f"  grouped CV ({kind})", 2 * folds, progress)
+            cv = cv_metrics(ds, kind, n_folds=folds, seed=seed, n_jobs=n_jobs,
+                            progress=lambda *_: bar.update())
+            bar.close()
+            cmet["cv"], rmet["cv"] = cv["classification"], cv["regression"]
+        elif progress:
+            sys.stderr.write("  no cross validation (--cv-folds 0)\n")
         clf, reg = fit_pair(ds, kind, seed=seed, n_jobs=n_jobs)
-        cmet = {"cv": cv["classification"]}
-        rmet = {"cv": cv["regression"]}
         held = None
         if test_sets is not None and mode in test_sets and len(test_sets[mode]):
             te = test_sets[mode]
@@ -111,13 +142,16 @@ def train(train_sets: dict, test_sets: dict | None, out: Path, *, kind: str = "x
             cmet["held_out"] = classification_metrics(te.tp, conf)
             cmet["held_out_detector_score"] = classification_metrics(te.tp, te.score)
             rmet["held_out"] = regression_metrics(te.iou, pred)
-            held = {"sources": _sources(te), **te.summary()}
+            held = {"sources": _sources(te), **te.summary(), "data": _data(te)}
         target = ("IoU_BEV with the best ground-truth box of the same class" if ds.class_aware
                   else "IoU_BEV with the best ground-truth box of any class")
         training = {"sources": _sources(ds), **ds.summary(),
                     "target": target, "tp_rule": f"IoU_BEV >= {TP_IOU}",
                     "settings": ds.info.get("settings"), "kind": kind, "seed": seed,
-                    "cv_folds": cv_folds, "command": command, "held_out": held}
+                    "cv_folds": folds, "command": command, "held_out": held,
+                    "data": _data(ds)}
+        if not folds:
+            training["cross_validation"] = "skipped: --cv-folds 0"
         cpath, rpath = meta_model.save_pair(out, f"lmd_{mode}", clf, reg, ds.feature_names,
                                             training_data=_round(training),
                                             classifier_metrics=_round(cmet),
@@ -141,6 +175,36 @@ def _f(x, d=4):
     return "–" if x is None or not np.isfinite(x) else f"{x:.{d}f}"
 
 
+def _source_lines(data: dict | None, label: str) -> list[str]:
+    """Card lines naming where ``label`` data came from (``_data``)."""
+    if not data:
+        return []
+    out = []
+    bags = [s["path"] for s in data["sources"] if s.get("kind") == "perception_bag"]
+    if bags:
+        out.append(f"- {label} perception bags: {', '.join(f'`{b}`' for b in bags)}.")
+    for s in data["sources"]:
+        if s.get("kind") == "kitti":
+            props = s.get("proposals")
+            out.append(f"- {label} KITTI object directory `{s['path']}` (split "
+                       f"`{s.get('split')}`), detector results `{s.get('results')}`"
+                       + (f", proposals `{props}`" if props else ", no proposals") + ".")
+    return out
+
+
+def _origin_line(tr: dict) -> str:
+    data = tr.get("data") or {}
+    if data.get("simulated"):
+        return ("- Detections, proposals and ground truth: simulated lidar sequences "
+                "(`lidar_sim`) run through the reference perception (`reference_perception`), "
+                "stored as perception bags (`make meta-data`).")
+    if any(s.get("kind") == "kitti" for s in data.get("sources", [])):
+        return ("- Ground truth: the KITTI directory's `label_2` (camera boxes converted with "
+                "each frame's `calib`); detections and proposals: the result files named above.")
+    return ("- Detections, proposals and ground truth: the perception bags named above "
+            "(`/perception/detections`, `/perception/proposals`, `/lidar/gt_objects`).")
+
+
 def model_card(results: dict, command: str) -> str:
     """MODEL_CARD.md text of a ``train`` run."""
     any_mode = next(iter(results.values()))
@@ -162,13 +226,14 @@ def model_card(results: dict, command: str) -> str:
         f"{_f(tr['tp_rate'], 3)}) from {tr['groups']} sequences: "
         f"{', '.join(map(str, tr['sources']))}.",
     ]
+    lines += _source_lines(tr.get("data"), "Training")
     if held:
         lines.append(f"- Held out: {held['frames']} frames, {held['boxes']} boxes ({held['tp']} "
                      f"TP, rate {_f(held['tp_rate'], 3)}) from {held['groups']} sequences: "
                      f"{', '.join(map(str, held['sources']))}.")
+        lines += _source_lines(held.get("data"), "Held-out")
     lines += [
-        "- Detections, proposals and ground truth: simulated lidar sequences (`lidar_sim`) run "
-        "through the reference perception (`reference_perception`), stored as perception bags.",
+        _origin_line(tr),
         f"- Target: {tr['target']} (class-agnostic, as the authors' code); TP iff "
         f"{tr['tp_rule']}.", "",
         "## Features", "",
@@ -191,8 +256,11 @@ def model_card(results: dict, command: str) -> str:
         "only with its geometry and its score; the features do not depend on the order of "
         "the proposals (`lmd_ros.features`).", "",
         "## Metrics", "",
-        f"Grouped {tr['cv_folds']}-fold cross validation over the training sequences "
-        "(mean ± std over folds) and held-out sequences. ECE / MCE: 10 equal-width bins.", "",
+        (f"Grouped {tr['cv_folds']}-fold cross validation over the training sequences "
+         "(mean ± std over folds)" if tr["cv_folds"] else
+         "No cross validation (`--cv-folds 0`): the CV columns are empty")
+        + (" and held-out sequences." if held else "; no held-out data.")
+        + " ECE / MCE: 10 equal-width bins.", "",
         "| mode | features | CV AUROC | CV R² | held-out accuracy | held-out AUROC | "
         "held-out AUPRC | held-out ECE | held-out MCE | held-out R² | held-out MAE | "
         "detector score AUROC | detector score ECE | size kB |",
@@ -202,9 +270,12 @@ def model_card(results: dict, command: str) -> str:
         c, g = r["classifier"], r["regressor"]
         h, hs, hr = c.get("held_out", {}), c.get("held_out_detector_score", {}), g.get(
             "held_out", {})
+        cv_auroc = (f"{_f(c['cv']['auroc'][0])} ± {_f(c['cv']['auroc'][1])}" if "cv" in c
+                    else "–")
+        cv_r2 = f"{_f(g['cv']['r2'][0])} ± {_f(g['cv']['r2'][1])}" if "cv" in g else "–"
         lines.append(
-            f"| {mode} | {r['n_features']} | {_f(c['cv']['auroc'][0])} ± {_f(c['cv']['auroc'][1])} "
-            f"| {_f(g['cv']['r2'][0])} ± {_f(g['cv']['r2'][1])} | {_f(h.get('accuracy'))} | "
+            f"| {mode} | {r['n_features']} | {cv_auroc} "
+            f"| {cv_r2} | {_f(h.get('accuracy'))} | "
             f"{_f(h.get('auroc'))} | {_f(h.get('auprc'))} | {_f(h.get('ece'))} | "
             f"{_f(h.get('mce'))} | {_f(hr.get('r2'))} | {_f(hr.get('mae'))} | "
             f"{_f(hs.get('auroc'))} | {_f(hs.get('ece'))} | {r['bytes'] / 1e3:.0f} |")
@@ -222,17 +293,22 @@ def main(argv=None) -> int:
     ap.add_argument("--kind", choices=meta_model.KINDS, default="xgboost")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=1, help="estimator threads")
-    ap.add_argument("--cv-folds", type=int, default=4, help="grouped CV folds (by sequence)")
+    ap.add_argument("--cv-folds", type=meta_model.cv_folds_arg, default=4,
+                    help="grouped CV folds (by sequence; needs >= 2 sequences); 0: no CV")
     ap.add_argument("--no-model-card", action="store_true")
     args = ap.parse_args(argv)
     command = "lmd-train " + " ".join(shlex.quote(a) for a in
                                       (sys.argv[1:] if argv is None else list(argv)))
-    settings = settings_from_args(args, args.modes)
-    train_sets = load_from_args(args, settings, "train")
-    test_sets = load_from_args(args, settings, "test")
-    results = train(train_sets, test_sets, args.out, kind=args.kind, seed=args.seed,
-                    n_jobs=args.jobs, cv_folds=args.cv_folds, command=command,
-                    progress=not args.quiet)
+    try:
+        settings = settings_from_args(args, args.modes)
+        train_sets = load_from_args(args, settings, "train")
+        test_sets = load_from_args(args, settings, "test")
+        results = train(train_sets, test_sets, args.out, kind=args.kind, seed=args.seed,
+                        n_jobs=args.jobs, cv_folds=args.cv_folds, command=command,
+                        progress=not args.quiet)
+    except (ValueError, OSError, ModelStoreError) as exc:  # bad data: say why, no traceback
+        print(f"lmd-train: {exc}", file=sys.stderr)
+        return 2
     if not args.no_model_card:
         (Path(args.out) / "MODEL_CARD.md").write_text(model_card(results, command))
     for mode, r in results.items():

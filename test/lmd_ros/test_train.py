@@ -78,3 +78,81 @@ def test_same_command_same_models(data, tmp_path):
     ma = json.loads((a / "lmd_none_classifier.joblib.manifest.json").read_text())
     mb = json.loads((b / "lmd_none_classifier.joblib.manifest.json").read_text())
     assert ma["metrics"] == mb["metrics"]
+
+
+# ---------------------------------------------------------------- issue 14: no silent failure
+def _run_one(data, out, *extra, train_bags=None):
+    return train.main(["--train", *(str(b) for b in (train_bags or [data / "meta_train"])),
+                       "--test", "--out", str(out), "--cache", str(data / "cache"),
+                       "--modes", "none", "--quiet", *extra])
+
+
+def test_cv_folds_0_trains_without_cross_validation_and_says_so(data, tmp_path):
+    out = tmp_path / "m"
+    assert _run_one(data, out, "--cv-folds", "0") == 0
+    man = read_manifest(out / "lmd_none_classifier.joblib")
+    assert man["training_data"]["cv_folds"] == 0
+    assert man["training_data"]["cross_validation"] == "skipped: --cv-folds 0"
+    assert "cv" not in man["metrics"]
+    card = (out / "MODEL_CARD.md").read_text()
+    assert "No cross validation (`--cv-folds 0`)" in card and "| none | 17 | – | – |" in card
+
+
+def test_cv_folds_1_is_refused_by_the_argument_parser(data, tmp_path, capsys):
+    with pytest.raises(SystemExit) as e:
+        _run_one(data, tmp_path / "m", "--cv-folds", "1")
+    assert e.value.code == 2
+    assert "must be 0 (no cross validation) or >= 2" in capsys.readouterr().err
+
+
+def test_one_bag_says_why_cross_validation_cannot_run_then_trains_without(data, tmp_path,
+                                                                          capsys):
+    one = [data / "meta_train" / "seq_00"]
+    out = tmp_path / "m"
+    assert _run_one(data, out, train_bags=one) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lmd-train: grouped cross validation needs at least 2 sequences")
+    assert "the training data has 1" in err and "--cv-folds 0" in err
+    assert "Traceback" not in err and not out.exists()
+    assert _run_one(data, out, "--cv-folds", "0", train_bags=one) == 0
+    assert read_manifest(out / "lmd_none_classifier.joblib")["training_data"]["groups"] == 1
+
+
+def test_model_card_names_the_bags_and_says_simulated_only_for_ours(data, tmp_path,
+                                                                    monkeypatch):
+    from lidar_quality_core import meta_model
+
+    out = tmp_path / "m"
+    assert _run_one(data, out, "--cv-folds", "2") == 0
+    card = (out / "MODEL_CARD.md").read_text()
+    bags = [f"`{data / 'meta_train' / f'seq_{k:02d}'}`" for k in range(3)]
+    assert f"- Training perception bags: {', '.join(bags)}." in card
+    assert "simulated" not in card
+    assert "the perception bags named above" in card
+    td = read_manifest(out / "lmd_none_classifier.joblib")["training_data"]
+    assert td["data"]["simulated"] is False
+    assert [s["path"] for s in td["data"]["sources"]] == [b.strip("`") for b in bags]
+    # the same bags where `make meta-data` writes its simulated splits: ours
+    monkeypatch.setattr(meta_model, "SIMULATED_DATA_DIR", data)
+    (data / "meta_train" / ".done").touch()
+    try:
+        assert _run_one(data, out, "--cv-folds", "2") == 0
+    finally:
+        (data / "meta_train" / ".done").unlink()
+    card = (out / "MODEL_CARD.md").read_text()
+    assert "simulated lidar sequences (`lidar_sim`)" in card and bags[0] in card
+
+
+def test_model_card_of_kitti_data_names_the_directory():
+    tr = {"frames": 2, "boxes": 3, "tp": 1, "tp_rate": 1 / 3, "groups": 1, "sources": ["00"],
+          "kind": "xgboost", "seed": 0, "cv_folds": 0, "target": "IoU_BEV",
+          "tp_rule": "IoU_BEV >= 0.5", "settings": {}, "held_out": None,
+          "data": {"simulated": False, "sources": [
+              {"kind": "kitti", "path": "/k", "split": "training", "results": "/r",
+               "proposals": None}]}}
+    res = {"none": {"training": tr, "classifier": {}, "regressor": {}, "n_features": 17,
+                    "bytes": 1000}}
+    card = train.model_card(res, "lmd-train --kitti-root /k")
+    assert ("- Training KITTI object directory `/k` (split `training`), detector results "
+            "`/r`, no proposals.") in card
+    assert "simulated" not in card and "`label_2`" in card
