@@ -40,7 +40,8 @@ import numpy as np
 from lidar_quality_core.time_sync import stamp_of_bytes
 
 DEFAULT_DATA = Path("data/perception/demo")
-EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_DROPPED = 0, 1, 2, 3
+# 4, not 3: scripts/loopback_guard.sh exits 3 for DDS traffic off loopback
+EXIT_OK, EXIT_FAILED, EXIT_USAGE, EXIT_DROPPED = 0, 1, 2, 4
 EXIT_CODES = f"""exit codes:
   {EXIT_OK}  every node answered its frames (drops within --max-drop-fraction are said)
   {EXIT_FAILED}  failed: a node died, produced nothing, or published an output that does not

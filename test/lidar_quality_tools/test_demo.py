@@ -1,7 +1,7 @@
 """The demo end to end on a 5-frame perception bag: node executables as processes with
 use_sim_time, bag_player replaying with /clock, outputs recorded and evaluated; the
 report, summary and plots written. A bag whose middle cloud is malformed: LMD and LMS
-drop that frame, the demo says so first and exits 3, the pictures come from a frame
+drop that frame, the demo says so first and exits 4, the pictures come from a frame
 every node answered; the exit-code decision on that run's figures. And a bag that is not
 a perception bag: a clear failure, no hang."""
 import copy
@@ -94,7 +94,7 @@ def dropped_run(bags, tmp_path_factory):
     return r, out, json.loads((out / "summary.json").read_text())
 
 
-def test_dropped_frames_exit_3_and_are_said_first(dropped_run):
+def test_dropped_frames_exit_4_and_are_said_first(dropped_run):
     r, out, s = dropped_run
     assert r.returncode == EXIT_DROPPED, r.stdout + r.stderr
     nodes = s["nodes"]
@@ -107,9 +107,9 @@ def test_dropped_frames_exit_3_and_are_said_first(dropped_run):
     lmd = next(x for x in said if x.split()[3] == "lmd_node")
     assert f"dropped {nodes['lmd']['dropped']} of {N_FRAMES} frames" in lmd
     assert "likely cause: " in lmd and "1 frame(s) with a malformed input cloud" in lmd
-    assert "exit 3 (frames dropped)" in r.stderr and "lmd_node" in r.stderr
+    assert "exit 4 (frames dropped)" in r.stderr and "lmd_node" in r.stderr
     report = (out / "report.md").read_text()
-    assert report.index("Exit code 3") < report.index("lmd_node dropped") < report.index(
+    assert report.index("Exit code 4") < report.index("lmd_node dropped") < report.index(
         "## Frames and latency")
     # the pictures: not the middle frame (LMD and LMS dropped it) but one all answered
     assert s["verdict"]["picture_frame"] not in (None, N_FRAMES // 2)
