@@ -176,10 +176,10 @@ def cv_folds_arg(text: str) -> int:
     return n
 
 
-def cv_fold_count(groups, n_folds: int, *, what: str = "groups") -> int:
+def cv_fold_count(groups, n_folds: int, *, what: str = "groups", hint: str = "") -> int:
     """The folds a grouped cross validation of ``n_folds`` runs on ``groups``: 0 for
     ``n_folds`` 0 (none), else ``min(n_folds, distinct groups)``. Fewer than 2 groups
-    raise ``ValueError`` saying so and how to train anyway (``--cv-folds 0``)."""
+    raise ``ValueError`` saying so and how to train anyway (``--cv-folds 0``, ``hint``)."""
     n_folds = int(n_folds)
     if n_folds == 0:
         return 0
@@ -188,8 +188,8 @@ def cv_fold_count(groups, n_folds: int, *, what: str = "groups") -> int:
     n = int(np.unique(np.asarray(groups)).size)
     if n < 2:
         raise ValueError(f"grouped cross validation needs at least 2 {what}, the training "
-                         f"data has {n}: train on more, or pass --cv-folds 0 to train "
-                         "without cross validation")
+                         f"data has {n}: train on more{hint}, or pass --cv-folds 0 to "
+                         "train without cross validation")
     return min(n_folds, n)
 
 

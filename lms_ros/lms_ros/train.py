@@ -8,8 +8,12 @@ positive; its probability is the node's ``confidence``) and the meta regressor (
 IoU_adj: ``predicted_iou``) on all metrics of :meth:`LmsSettings.metric_names`, and saves
 them with :func:`lidar_quality_core.meta_model.save_pair` as ``lms_classifier.joblib`` /
 ``lms_regressor.joblib`` with manifests (training data, settings, grouped
-cross-validation metrics) and a ``MODEL_CARD.md``. XGBoost by default (paper III), seeded
-and single-threaded: the same data give the same models.
+cross-validation metrics) and a ``MODEL_CARD.md`` naming the data (bag or SemanticKITTI
+paths; "simulated" only for the project's own data, ``meta_model.simulated_sources``).
+XGBoost by default (paper III), seeded and single-threaded: the same data give the same
+models. ``--cv-folds 0`` trains without cross validation (said in manifests and card);
+cross validation needs at least two sub-sequences (groups of ``--block-frames``), else the
+run ends with the reason and the fix (exit 2, no traceback), as for other bad data.
 
 Feature sets (also used by ``lms-eval`` for the paper's baselines), by metric name:
 
@@ -34,6 +38,7 @@ import numpy as np
 
 from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as qm
+from lidar_quality_core.model_store import ModelStoreError
 from lidar_quality_core.progress import Progress
 
 from .dataset import DEFAULT_BLOCK_FRAMES, RING_FROM, SegmentDataset, build_dataset
@@ -145,7 +150,29 @@ def data_summary(ds: SegmentDataset) -> dict:
             "excluded_small_segments": ds.info.get("n_excluded"),
             "dropped_undefined_iou": ds.info.get("dropped_undefined"),
             "ignore_label": ds.info.get("ignore_label"), "ring_from": ds.info.get("ring_from"),
-            "settings": ds.info.get("settings"), "sources": ds.info.get("sources")}
+            "settings": ds.info.get("settings"), "sources": ds.info.get("sources"),
+            "data": _data(ds.info.get("sources") or [])}
+
+
+def _data(paths) -> dict:
+    """``{"sources": [{"kind": "perception_bag" | "semantickitti", "path"}], "simulated"}``
+    of the dataset's source paths (the model card's data section)."""
+    src = [{"kind": "perception_bag" if (Path(p) / "metadata.yaml").is_file()
+            else "semantickitti", "path": str(p)} for p in paths]
+    return {"sources": src, "simulated": all(s["kind"] == "perception_bag" for s in src)
+            and meta_model.simulated_sources([s["path"] for s in src])}
+
+
+def _source_lines(data: dict | None) -> list[str]:
+    if not data:
+        return []
+    out = []
+    for kind, label in (("perception_bag", "Perception bags"),
+                        ("semantickitti", "SemanticKITTI-style sequences")):
+        paths = [s["path"] for s in data["sources"] if s["kind"] == kind]
+        if paths:
+            out.append(f"- {label}: {', '.join(f'`{p}`' for p in paths)}.")
+    return out
 
 
 def _model_card(path: Path, data: dict, cv: dict | None, kind: str, command: str,
@@ -168,12 +195,15 @@ def _model_card(path: Path, data: dict, cv: dict | None, kind: str, command: str
              f"{data['dropped_undefined_iou']} with undefined IoU dropped); "
              f"true-positive rate {data['true_positive_rate']:.3f}, mean IoU_adj "
              f"{data['mean_iou_adj']:.3f}.",
-             f"- Sources: {', '.join(data['sequences'])}.",
+             f"- Sequences: {', '.join(data['sequences'])}.",
+             *_source_lines(data.get("data")),
              f"- Ground-truth label {data['ignore_label']} ignored in the targets; clouds "
              f"decoded as the node does (rows from: {data['ring_from']}).",
              f"- Files: " + ", ".join(f"`{k}` {v / 1024:.0f} kB" for k, v in sizes.items()),
              ""]
-    if cv is not None:
+    if cv is None:
+        lines += ["No cross validation (`--cv-folds 0`).", ""]
+    else:
         c, r = cv["classification"], cv["regression"]
 
         def ms(d, k):
@@ -188,23 +218,38 @@ def _model_card(path: Path, data: dict, cv: dict | None, kind: str, command: str
         for k, lab in (("r2", "R²"), ("mae", "MAE")):
             lines.append(f"| {lab} (IoU_adj) | {ms(r['train'], k)} | {ms(r['val'], k)} |")
         lines += ["", "Held-out results and the baselines: `lms-eval` (report.md)."]
+    trained_on = ("simulated HDL-64 scans segmented by the reference segmenter"
+                  if (data.get("data") or {}).get("simulated") else
+                  "the data named above, segmented by the network that wrote its "
+                  "probabilities")
     lines += ["", "## Limits", "",
-              "Trained on simulated HDL-64 scans segmented by the reference segmenter: the "
-              "metrics depend on that segmenter's probability calibration and on the sensor "
-              "layout (image size, rows from rings). Retrain for another segmentation network "
-              "or sensor; a model is refused by the node if its feature schema (class list) "
-              "does not match.", ""]
+              f"Trained on {trained_on}: the metrics depend on that segmenter's probability "
+              "calibration and on the sensor layout (image size, rows from rings). Retrain for "
+              "another segmentation network or sensor; the node refuses a model trained for "
+              "another class list, image geometry or min_segment_points (manifest "
+              "`training_data.settings`).", ""]
     path.write_text("\n".join(lines))
 
 
 def train(ds: SegmentDataset, out, *, kind: str = "xgboost", n_folds: int = 10,
           seed: int = 0, n_jobs: int = 1, command: str = "", quiet: bool = False) -> dict:
-    """Cross-validate (``n_folds`` > 1), fit on all rows and save the pair + model card
-    into ``out``. Returns a summary (data, CV means and stds, file sizes)."""
+    """Cross-validate (``n_folds`` >= 2; 0: none), fit on all rows and save the pair +
+    model card into ``out``. Returns a summary (data, CV means and stds, file sizes).
+    Raises ``ValueError`` for data it cannot train on (no segment, one CV group)."""
     out = Path(out)
+    if not len(ds):
+        raise ValueError(f"no segment in the training data ({ds.info.get('n_frames', 0)} "
+                         f"frames, {ds.info.get('n_excluded', 0)} segments below "
+                         "min_segment_points)")
+    n_folds = meta_model.cv_fold_count(ds.group, n_folds,
+                                       what=f"sub-sequences of {ds.info.get('block_frames')} "
+                                            "frames (groups)",
+                                       hint=" or a smaller --block-frames")
     data = data_summary(ds)
     cv = None
-    if n_folds > 1:
+    if not n_folds and not quiet:
+        sys.stderr.write("no cross validation (--cv-folds 0)\n")
+    if n_folds:
         bar = Progress("cross validation", 2 * n_folds, not quiet)
         cv = cross_validate_pair(ds, kind=kind, n_folds=n_folds, seed=seed, n_jobs=n_jobs,
                                  progress=bar)
@@ -218,7 +263,10 @@ def train(ds: SegmentDataset, out, *, kind: str = "xgboost", n_folds: int = 10,
         return {"cv_folds": n_folds, "cv_groups": "sub-sequences",
                 "cv_train": cv[task]["train"], "cv_val": cv[task]["val"]}
 
-    training_data = {**data, "kind": kind, "seed": seed, "command": command}
+    training_data = {**data, "kind": kind, "seed": seed, "command": command,
+                     "cv_folds": n_folds}
+    if not n_folds:
+        training_data["cross_validation"] = "skipped: --cv-folds 0"
     cpath, rpath = meta_model.save_pair(out, PREFIX, clf, reg, ds.names,
                                         training_data=training_data,
                                         classifier_metrics=task_cv("classification"),
@@ -289,18 +337,24 @@ def main(argv=None) -> int:
                     help="perception bag(s), directories of bags or SemanticKITTI-style roots")
     ap.add_argument("--out", type=Path, default=Path("models/lms"))
     ap.add_argument("--kind", choices=meta_model.KINDS, default="xgboost")
-    ap.add_argument("--folds", type=int, default=10, help="grouped CV folds (0: no CV)")
+    ap.add_argument("--cv-folds", "--folds", dest="folds", type=meta_model.cv_folds_arg,
+                    default=10, help="grouped CV folds over sub-sequences (0: no CV)")
     ap.add_argument("--seed", type=int, default=0)
     add_data_arguments(ap)
     a = ap.parse_args(argv)
     command = "lms-train " + " ".join(shlex.quote(x) for x in (sys.argv[1:] if argv is None
                                                                  else argv))
-    ds = dataset_from_args(a, a.data)
-    if not a.quiet:
-        sys.stderr.write(f"{len(ds)} segments from {ds.info['n_frames']} frames of "
-                         f"{len(ds.sequences)} sequences, {len(np.unique(ds.group))} groups\n")
-    summary = train(ds, a.out, kind=a.kind, n_folds=a.folds, seed=a.seed, command=command,
-                    quiet=a.quiet)
+    try:
+        ds = dataset_from_args(a, a.data)
+        if not a.quiet:
+            sys.stderr.write(f"{len(ds)} segments from {ds.info['n_frames']} frames of "
+                             f"{len(ds.sequences)} sequences, {len(np.unique(ds.group))} "
+                             "groups\n")
+        summary = train(ds, a.out, kind=a.kind, n_folds=a.folds, seed=a.seed,
+                        command=command, quiet=a.quiet)
+    except (ValueError, OSError, ModelStoreError) as exc:  # bad data: say why, no traceback
+        print(f"lms-train: {exc}", file=sys.stderr)
+        return 2
     if summary["cv"] and not a.quiet:
         c, r = summary["cv"]["classification"]["val"], summary["cv"]["regression"]["val"]
         print(f"CV validation: ACC {c['accuracy'][0]:.3f}  AUROC {c['auroc'][0]:.3f}  "

@@ -84,3 +84,50 @@ def test_cli_trains_loadable_models_the_node_runs(bags, tmp_path):
     for a, b in zip(models.predict(X), again.predict(X)):
         np.testing.assert_array_equal(a, b)
     json.dumps(man)  # the manifest holds plain JSON
+
+
+# ---------------------------------------------------------------- issue 14: no silent failure
+def _main(bags, out, *extra):
+    return main(["--data", *map(str, bags), "--width", str(COLUMNS), "--cache",
+                 str(bags[0].parent.parent / "cache"), "--quiet", "--out", str(out), *extra])
+
+
+def test_cv_folds_0_trains_without_cross_validation_and_says_so(bags, tmp_path):
+    assert _main([bags], tmp_path, "--cv-folds", "0", "--block-frames", "2") == 0
+    td = read_manifest(tmp_path / "lms_classifier.joblib")["training_data"]
+    assert td["cv_folds"] == 0 and td["cross_validation"] == "skipped: --cv-folds 0"
+    assert "No cross validation (`--cv-folds 0`)." in (tmp_path / "MODEL_CARD.md").read_text()
+
+
+def test_one_bag_trains_with_subsequence_folds_or_says_why_not(bags, tmp_path, capsys):
+    one = sorted(bags.iterdir())[:1]
+    # 4 frames in blocks of 2: two groups, cross validation runs on one bag
+    assert _main(one, tmp_path / "a", "--cv-folds", "3", "--block-frames", "2") == 0
+    td = read_manifest(tmp_path / "a" / "lms_classifier.joblib")["training_data"]
+    assert td["n_sequences"] == 1 and td["n_groups"] == 2 and td["cv_folds"] == 2
+    # one block of 10 frames: one group
+    assert _main(one, tmp_path / "b", "--cv-folds", "3") == 2
+    err = capsys.readouterr().err
+    assert err.startswith("lms-train: grouped cross validation needs at least 2 "
+                          "sub-sequences of 10 frames (groups), the training data has 1")
+    assert "--block-frames" in err and "--cv-folds 0" in err and "Traceback" not in err
+    assert not (tmp_path / "b" / "lms_classifier.joblib").exists()
+
+
+def test_model_card_names_the_bags_and_says_simulated_only_for_ours(bags, tmp_path,
+                                                                    monkeypatch):
+    from lidar_quality_core import meta_model
+
+    assert _main([bags], tmp_path / "a", "--cv-folds", "0") == 0
+    card = (tmp_path / "a" / "MODEL_CARD.md").read_text()
+    paths = ", ".join(f"`{p}`" for p in sorted(bags.iterdir()))
+    assert f"- Perception bags: {paths}." in card
+    assert "simulated" not in card and "Trained on the data named above" in card
+    monkeypatch.setattr(meta_model, "SIMULATED_DATA_DIR", bags.parent)
+    (bags / ".done").touch()  # as `make meta-data` leaves a simulated split
+    try:
+        assert _main([bags], tmp_path / "b", "--cv-folds", "0") == 0
+    finally:
+        (bags / ".done").unlink()
+    card = (tmp_path / "b" / "MODEL_CARD.md").read_text()
+    assert "Trained on simulated HDL-64 scans" in card and paths in card
