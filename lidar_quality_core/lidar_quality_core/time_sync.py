@@ -12,7 +12,7 @@ Matching rule (both modes share it; ``exact`` is ``approximate`` with ``slop_ns=
   is ``<= slop_ns``. Emission is eager (lowest latency): a message arriving later could
   have formed a tighter set, but sets are never held back waiting for one.
 * Because every arrival is tried immediately, no emittable set ever waits in the
-  queues, so one ``add`` emits at most one set.
+  queues, so one ``add`` emits at most one set (a loop restart, below, may emit more).
 * After an emission each queue discards its emitted message and everything at or
   older than it on that queue (the older ones count as ``dropped_unmatched``). Newer
   messages stay, so per input the emitted stamps are strictly increasing.
@@ -22,7 +22,11 @@ Matching rule (both modes share it; ``exact`` is ``approximate`` with ``slop_ns=
 * A message older than the last emitted reference stamp by more than
   ``reset_on_backwards_ns`` (a bag replayed in a loop, a sim clock reset) clears all
   queues (``resets`` += 1, cleared messages counted ``dropped_reset``) and is then
-  accepted normally.
+  accepted normally. A shorter jump back is a loop too once *every* input has sent a
+  message older than its last emitted one since the last emission (a bag shorter than
+  ``reset_on_backwards_ns`` replayed in a loop): the queues are cleared the same way and
+  those messages (first counted ``late``) are queued again, so the looped frames match
+  instead of all counting late. A straggler on some inputs only stays ``late``.
 * Queues hold at most ``queue_size`` messages after ``add`` returns; overflow drops the
   earliest *arrived* message (``dropped_overflow``). Arrival order rather than stamp
   order so that stale stamps from before an unnoticed clock jump cannot pin the queue.
@@ -215,6 +219,9 @@ class StampSynchronizer:
         self._seq = 0
         self._last_ref: int | None = None
         self._last_emitted: list[int | None] = [None] * n_inputs
+        # newest message per input stamped before its last emitted one, since the last
+        # emission: when every input has one, the stream went back in time (a loop)
+        self._backward: list[tuple[int, Any] | None] = [None] * n_inputs
 
     # -- public API ---------------------------------------------------------------
 
@@ -277,6 +284,7 @@ class StampSynchronizer:
         self._stats.resets += 1
         self._last_ref = None
         self._last_emitted = [None] * self.n_inputs
+        self._backward = [None] * self.n_inputs
 
     def _add_locked(self, i: int, t: int, msg: Any) -> list[SyncedSet]:
         st = self._stats
@@ -286,7 +294,24 @@ class StampSynchronizer:
         last_i = self._last_emitted[i]
         if last_i is not None and t <= last_i:
             st.late[i] += 1
+            if t < last_i:
+                self._backward[i] = (t, msg)
+                if all(b is not None for b in self._backward):
+                    return self._restart_after_loop()
             return []
+        return self._accept(i, t, msg)
+
+    def _restart_after_loop(self) -> list[SyncedSet]:
+        backward = self._backward
+        self._reset_locked()
+        out: list[SyncedSet] = []
+        for j, (t, msg) in enumerate(backward):
+            self._stats.late[j] -= 1
+            out += self._accept(j, t, msg)
+        return out
+
+    def _accept(self, i: int, t: int, msg: Any) -> list[SyncedSet]:
+        st = self._stats
         self._arrivals += 1
         pivot_pos = self._queues[i].insert(t, self._arrivals, msg)
         chosen = self._find_set(i, t, pivot_pos)
@@ -345,6 +370,7 @@ class StampSynchronizer:
             self._last_emitted[j] = stamps[-1]
         ref = max(stamps)
         self._last_ref = ref
+        self._backward = [None] * self.n_inputs
         st.matched += 1
         out = SyncedSet(ref, tuple(msgs), tuple(stamps), self._seq)
         self._seq += 1

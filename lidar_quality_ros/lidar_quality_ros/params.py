@@ -1,6 +1,8 @@
 """Parameter declaration with mandatory descriptions."""
 from __future__ import annotations
 
+import math
+
 from pathlib import Path
 from typing import Any
 
@@ -11,16 +13,24 @@ _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEG
           float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
 
 
-def declare(node, name: str, default: Any, description: str, *, read_only: bool = False,
+def declare(node, name: str, default: Any, description: str, *, read_only: bool = True,
             min_value: float | None = None, max_value: float | None = None,
             choices: tuple[str, ...] | None = None) -> Any:
     """Declare ``name`` with a description (and range / choices) and return its value.
 
-    Values outside the range or the choices raise ``ValueError`` naming the parameter,
-    so a misconfigured node fails at start-up with a clear message.
+    Values outside the range or the choices, and non-finite floats, raise ``ValueError``
+    naming the parameter, so a misconfigured node fails at start-up with a clear message.
+    Parameters are read-only unless ``read_only=False``: the nodes read them once at
+    start, and ``ros2 param set`` on one of them is refused ("read-only", restart the
+    node with the new value) instead of being accepted and ignored. A node that applies
+    a parameter at run time declares it with ``read_only=False`` and handles the change.
     """
     if not description:
         raise ValueError(f"parameter {name!r} needs a description")
+    if not read_only:
+        description += " Can be changed at run time (ros2 param set)."
+    else:
+        description += " Read at start-up (read-only: restart the node to change it)."
     desc = ParameterDescriptor(name=name, description=description, read_only=read_only,
                                type=_TYPES.get(type(default), ParameterType.PARAMETER_NOT_SET))
     if choices:
@@ -34,12 +44,24 @@ def declare(node, name: str, default: Any, description: str, *, read_only: bool 
         else:
             desc.floating_point_range = [FloatingPointRange(from_value=float(lo),
                                                             to_value=float(hi), step=0.0)]
-    value = node.declare_parameter(name, default, desc).value
+    try:
+        value = node.declare_parameter(name, default, desc).value
+    except Exception as exc:  # rclpy's own refusals (type, range) do not always name it
+        raise ValueError(f"parameter {name!r}: {exc}") from None
+    check_value(name, value, min_value=min_value, max_value=max_value, choices=choices)
+    return value
+
+
+def check_value(name: str, value: Any, *, min_value: float | None = None,
+                max_value: float | None = None, choices: tuple[str, ...] | None = None) -> None:
+    """Raise ``ValueError`` naming ``name`` when ``value`` is not finite, not one of
+    ``choices`` or outside ``[min_value, max_value]``."""
+    if isinstance(value, float) and not math.isfinite(value):
+        raise ValueError(f"parameter {name!r} = {value!r}: must be a finite number")
     if choices and value not in choices:
         raise ValueError(f"parameter {name!r} = {value!r}: expected one of {list(choices)}")
     if min_value is not None and value < min_value or max_value is not None and value > max_value:
         raise ValueError(f"parameter {name!r} = {value!r}: outside [{min_value}, {max_value}]")
-    return value
 
 
 def config_file(package: str, node_name: str) -> Path:

@@ -10,10 +10,12 @@ waiting frame (counted as ``overrun``) instead of building up latency.
 from __future__ import annotations
 
 import threading
+import time
 import traceback
 from collections import deque
 from typing import Callable, Sequence
 
+from lidar_quality_core.input_watchdog import InputWatchdog
 from lidar_quality_core.time_sync import StampSynchronizer, SyncedSet, stamp_to_ns
 from rclpy.callback_groups import ReentrantCallbackGroup
 
@@ -88,15 +90,20 @@ class SyncedInputs:
     ``raw_decoders`` maps topics to ``fn(bytes) -> obj with .header.stamp``: those are
     subscribed with ``raw=True`` and decoded on arrival (messages rclpy would deserialize
     far too slowly, e.g. ``detection_cdr.decode_detection_array``); bytes that do not
-    decode are dropped and counted (``undecodable_input``)."""
+    decode are dropped and counted (``undecodable_input``).
+
+    ``watchdog`` (an ``InputWatchdog`` over the same inputs) hears of every arrival and
+    every matched set, so the node can tell why nothing comes out."""
 
     def __init__(self, node, topics: Sequence[tuple[type, str]],
                  callback: Callable[[SyncedSet], None], *, mode: str = "exact",
                  slop_s: float = 0.0, queue_size: int = 10, processing_queue_size: int = 2,
                  qos=SENSOR_QOS, diagnostics=None,
                  on_arrival: Callable[[int, int], None] | None = None,
-                 raw_decoders: dict[str, Callable[[bytes], object]] | None = None):
+                 raw_decoders: dict[str, Callable[[bytes], object]] | None = None,
+                 watchdog: InputWatchdog | None = None):
         self.topics = [t for _, t in topics]
+        self.watchdog = watchdog
         self._decoders = dict(raw_decoders or {})
         self._on_arrival = on_arrival
         self.sync = StampSynchronizer(len(topics), mode=mode,
@@ -114,7 +121,7 @@ class SyncedInputs:
             for i, (msg_type, topic) in enumerate(topics)
         ]
         if diagnostics is not None:
-            diagnostics.add_source(self._stats, self.unmatched_dropped)
+            diagnostics.add_source(self._stats, self.unmatched_dropped, self.frames_lost)
 
     def _make_cb(self, index: int):
         topic = self.topics[index]
@@ -143,6 +150,8 @@ class SyncedInputs:
                 if self._diag is not None:
                     self._diag.frame_dropped("invalid_stamp")
                 return
+            if self.watchdog is not None:
+                self.watchdog.arrival(index, stamp_ns, time.monotonic())
             if self._on_arrival is not None:
                 self._on_arrival(index, stamp_ns)
             self.inject(index, stamp_ns, msg)
@@ -152,6 +161,8 @@ class SyncedInputs:
         """Queue ``msg`` for input ``index`` at ``stamp_ns`` as if it had arrived (not
         counted as received in the diagnostics) and process the set it completes."""
         for matched in self.sync.add(index, stamp_ns, msg):
+            if self.watchdog is not None:
+                self.watchdog.matched(time.monotonic())
             self.worker.submit(matched)
 
     def _overrun(self, n: int) -> None:
@@ -184,6 +195,12 @@ class SyncedInputs:
         """Input messages lost by the synchroniser (late, overflow, unmatched, reset)."""
         s = self.sync.stats()
         return sum(s.dropped) + sum(s.late)
+
+    def frames_lost(self) -> int:
+        """Frames the synchroniser lost, estimated as the most messages lost on one input
+        (a frame lost on every input is one frame, not one per input)."""
+        s = self.sync.stats()
+        return max(d + late for d, late in zip(s.dropped, s.late))
 
     def close(self) -> None:
         self.worker.stop()

@@ -68,11 +68,12 @@ class LmdNode(QualityNode):
             self.settings.validate()
         except ValueError as exc:
             raise ValueError(f"invalid parameter: {exc}") from None
-        min_conf = declare(self, "min_confidence", 0.0,
-                           "Publish on output/detections only detections with a meta "
-                           "confidence >= this (and not NaN); 0 keeps every detection. "
-                           "output/quality always lists all of them.",
-                           min_value=0.0, max_value=1.0)
+        min_conf = self.declare_live(
+            "min_confidence", 0.0,
+            "Publish on output/detections only detections with a meta confidence >= this "
+            "(and not NaN); 0 keeps every detection. output/quality always lists all of them.",
+            lambda v: setattr(self.processor, "min_confidence", float(v)),
+            min_value=0.0, max_value=1.0)
         self.publish_markers = declare(self, "publish_markers", True,
                                        "Publish output/markers (boxes coloured by "
                                        "confidence; built only while someone subscribes).")
@@ -100,7 +101,13 @@ class LmdNode(QualityNode):
         # deserialization of ~450 proposals x 4 hypotheses costs 100-300 ms per frame.
         raw = {t: decode_detection_array for _, t in topics if t != "input/points"}
         self.inputs = SyncedInputs(self, topics, self.on_frame, diagnostics=self.diag,
-                                   raw_decoders=raw, **self.declare_sync_parameters())
+                                   raw_decoders=raw, watchdog=self.new_watchdog(len(topics)),
+                                   **self.declare_sync_parameters())
+        self.watch_inputs({
+            "input/proposals": "set proposal_mode: none if your detector publishes no "
+                               "pre-NMS proposals (with the none-mode models)",
+            "input/detections": "set proposal_mode: exact if only proposals are published "
+                                "(the node then runs the NMS)"})
         self.get_logger().info(
             f"lmd_node ready ({mode} mode, models {self.models.confidence_model_id} / "
             f"{self.models.iou_model_id}), inputs: {', '.join(self.inputs.topics)}")
@@ -167,11 +174,7 @@ class LmdNode(QualityNode):
             self.diag.frame_dropped("malformed_cloud")
             return
         self.diag.clear("cloud")
-        for key in ("detections", "frame_id"):
-            if key in out.issues:
-                self.warn_input(key, out.issues[key])
-            else:
-                self.diag.clear(key)
+        self.report_issues(out.issues)
         self.pub_detections.publish(out.detections)
         self.pub_quality.publish(out.quality)
         if out.markers is not None:

@@ -51,7 +51,6 @@ from visualization_msgs.msg import MarkerArray
 from .pipeline import LmsProcessor, LmsSettings, default_model_paths
 
 _DEFAULTS = LmsSettings()
-_ISSUES = ("probabilities", "bad_probabilities", "intensity", "frame_id")
 
 
 class LmsNode(QualityNode):
@@ -88,7 +87,10 @@ class LmsNode(QualityNode):
         if self.separate:
             topics.append((PointCloud2, "input/probabilities"))
         self.inputs = SyncedInputs(self, topics, self.on_frame, diagnostics=self.diag,
+                                   watchdog=self.new_watchdog(len(topics)),
                                    **self.declare_sync_parameters())
+        self.watch_inputs({"input/probabilities": "set separate_probabilities: false if the "
+                                                  "probabilities are fields of input/points"})
         s = self.settings
         self.get_logger().info(
             f"lms_node ready ({len(s.class_names)} classes, image {s.channels} x {s.width}, "
@@ -165,11 +167,7 @@ class LmsNode(QualityNode):
             self.diag.frame_dropped("malformed_cloud")
             return
         self.diag.clear("cloud")
-        for key in _ISSUES:
-            if key in out.issues:
-                self.warn_input(key, out.issues[key])
-            else:
-                self.diag.clear(key)
+        self.report_issues(out.issues)
         self.pub_points.publish(out.points)
         self.pub_segments.publish(out.segments)
         if out.markers is not None:

@@ -34,6 +34,7 @@ from __future__ import annotations
 import threading
 import time
 
+from diagnostic_msgs.msg import DiagnosticStatus
 from lidar_quality_core.detection_cdr import decode_detection_array
 from lidar_quality_core.meta_model import MetaModels
 from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
@@ -69,11 +70,12 @@ class MimoNode(QualityNode):
             "its next message.", min_value=1e-3)
         self.publish_markers = declare(self, "publish_markers", True,
                                        "Publish output/markers (boxes coloured by confidence).")
-        self.output_scores = declare(
-            self, "output_scores", "confidence",
+        self.output_scores = self.declare_live(
+            "output_scores", "confidence",
             "Hypothesis scores of output/detections: 'confidence' (the merged class "
             "distribution scaled so that the top score is the meta confidence) or 'merged' "
-            "(the merged class distribution as it is).", choices=("confidence", "merged"))
+            "(the merged class distribution as it is).",
+            lambda v: setattr(self, "output_scores", v), choices=("confidence", "merged"))
         self.models = self._load_models()
 
         K = self.settings.num_heads
@@ -97,10 +99,17 @@ class MimoNode(QualityNode):
                             if self.publish_markers else None)
         # heads arrive as bytes, decoded straight to arrays: rclpy's own deserialization
         # of a 100-box head (400 hypotheses) costs tens of ms per message
+        self._stopped_since: dict[int, float] = {}
         self.inputs = SyncedInputs(self, topics, self.on_frame, diagnostics=self.diag,
                                    on_arrival=self._on_arrival, **sync,
                                    raw_decoders={f"input/head_{k}": decode_detection_array
-                                                 for k in range(K)})
+                                                 for k in range(K)},
+                                   watchdog=self.new_watchdog(len(topics)))
+        self.watch_inputs({**{f"input/head_{k}": f"set num_heads: {k}" for k in range(1, K)},
+                           **{f"input/head_{k}/variance": "set use_variances: false"
+                              for k in range(K)},
+                           "input/points": "set use_points: false (with the models "
+                                           "trained without points)"})
         self.diag.set_value("inputs_stopped", "none")
         self.get_logger().info(
             f"mimo_node ready, inputs: {', '.join(self.inputs.topics)}; models: "
@@ -162,15 +171,34 @@ class MimoNode(QualityNode):
                 self.inputs.inject(j, stamp, None)
         topics = self.inputs.topics
         for j in change.stopped:
-            self.warn_input(f"stopped.{topics[j]}",
-                            f"{topics[j]} sent nothing for > {self.head_timeout} s while the "
-                            "other inputs arrive: merging without it")
+            self._stopped_since[j] = time.monotonic()
+            self._warn_stopped(j)
         for j in change.resumed:
+            self._stopped_since.pop(j, None)
             self.diag.clear(f"stopped.{topics[j]}")
             self.get_logger().info(f"{topics[j]} is back")
         if change.stopped or change.resumed:
             stopped = [topics[j] for j in self.liveness.stopped]
             self.diag.set_value("inputs_stopped", ",".join(stopped) or "none")
+
+    def _warn_stopped(self, j: int, level=DiagnosticStatus.WARN) -> None:
+        name = self.inputs.topics[j]
+        resolved = self.inputs.subscriptions[j].topic_name
+        hint = self._input_hints.get(name)
+        self.warn_input(
+            f"stopped.{name}",
+            f"{name} (subscribed as {resolved}) sent nothing for > {self.head_timeout} s of "
+            "stamp time while the other inputs arrive: merging without it; if it is not "
+            f"published, remap it (--ros-args -r {name}:=<topic>)"
+            + (f" or {hint}" if hint else ""), level)
+
+    def _check(self) -> None:
+        super()._check()
+        # an input stopped for longer than input_error_timeout is an error, not a hiccup
+        now = time.monotonic()
+        for j, since in list(self._stopped_since.items()):
+            if now - since >= self.input_error_timeout:
+                self._warn_stopped(j, DiagnosticStatus.ERROR)
 
     # ---------------------------------------------------------------- frames
     def on_frame(self, synced) -> None:

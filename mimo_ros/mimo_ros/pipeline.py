@@ -460,17 +460,21 @@ class InputLiveness:
     """Which inputs of a stamp-synchronised set still publish, and the placeholders that
     let the others' frames through without them.
 
-    Time is stamp time: an input is *stopped* once the newest stamp seen on any input is
-    more than ``timeout_ns`` ahead of its own newest stamp (or of the first stamp seen, if
-    it never sent anything). This is deterministic, works with replayed bags and sim time,
-    and needs no timer: nothing is declared stopped while no input arrives at all. From
+    Time is stamp time: an input is *stopped* once "now" is more than ``timeout_ns`` ahead
+    of its own newest stamp (or of the first stamp seen, if it never sent anything). "Now"
+    for input j is the second newest stamp among the other inputs' messages, not the
+    newest: one message stamped in the future (a bad clock, a corrupt header) must not
+    declare every other input stopped; a real stop is seen one message later. This is
+    deterministic, works with replayed bags and sim time, and needs no timer: nothing is
+    declared stopped while no input arrives at all. From
     then on every stamp seen on a live input (and not yet matched) gets a placeholder for
     each stopped input, so the synchroniser completes the set with ``None`` in that slot;
     when the stopped input declares itself stopped, the stamps still waiting in the queues
     get theirs at once (oldest first), so those frames come out too. A message of a stopped
     input makes it live again (recovery); a placeholder already used for its stamp makes
     that message late (counted by the synchroniser). Stamps jumping back by more than
-    ``reset_ns`` (a looped bag) forget everything (all inputs live). In approximate mode a
+    ``reset_ns`` behind "now", or every live input having gone back in time (a looped bag,
+    however short), forget everything (all inputs live). In approximate mode a
     placeholder is added only if its stamp is more than ``slop_ns`` after the previous one
     of that input, so one frame gets one placeholder. Thread-safe.
     """
@@ -486,6 +490,8 @@ class InputLiveness:
 
     def _reset(self) -> None:
         self._newest: list[int | None] = [None] * self.n
+        self._top2: list[list[int]] = [[] for _ in range(self.n)]  # two newest stamps each
+        self._backward: set[int] = set()   # inputs whose stamps went back since the reset
         self._first: int | None = None
         self._stopped: set[int] = set()
         self._last_placeholder: list[int | None] = [None] * self.n
@@ -502,16 +508,31 @@ class InputLiveness:
         with self.lock:
             return self._arrival(index, stamp_ns, last_matched_ns)
 
+    def _now(self, exclude: int | None = None) -> int | None:
+        """Second newest stamp among the inputs other than ``exclude`` (None: too few)."""
+        stamps = sorted((s for j, top in enumerate(self._top2) if j != exclude for s in top),
+                        reverse=True)
+        return stamps[1] if len(stamps) > 1 else None
+
     def _arrival(self, i, t, last_matched):
         out = Arrival()
-        seen = [s for s in self._newest if s is not None]
-        if seen and t < max(seen) - self.reset_ns:
+        now = self._now()
+        if self._newest[i] is not None and t < self._newest[i]:
+            self._backward.add(i)
+        live = set(range(self.n)) - self._stopped
+        if ((now is not None and t < now - self.reset_ns)
+                or (len(live) > 0 and live <= self._backward)):
             out.resumed = sorted(self._stopped)
             self._reset()
         if self._first is None:
             self._first = t
         if self._newest[i] is None or t > self._newest[i]:
             self._newest[i] = t
+        top = self._top2[i]
+        if t not in top:
+            top.append(t)
+            top.sort(reverse=True)
+            del top[2:]
         if i in self._stopped:
             self._stopped.discard(i)
             self._last_placeholder[i] = None
@@ -524,11 +545,11 @@ class InputLiveness:
             del p[:-self.window]
         if last_matched is not None:
             del p[:sum(1 for s in p if s <= last_matched)]
-        now = max(s for s in self._newest if s is not None)
         for j in range(self.n):
             if j != i and j not in self._stopped:
                 ref = self._newest[j] if self._newest[j] is not None else self._first
-                if now - ref > self.timeout_ns:
+                now = self._now(exclude=j)
+                if now is not None and now - ref > self.timeout_ns:
                     self._stopped.add(j)
                     out.stopped.append(j)
         for j in sorted(self._stopped):

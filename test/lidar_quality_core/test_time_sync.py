@@ -463,3 +463,43 @@ def test_stamp_of_bytes_reads_the_header_stamp_and_refuses_other_bytes():
     for bad in (bytes(raw[:11]), b"\x01\x00" + bytes(raw[2:]), b""):
         with pytest.raises(ValueError):
             stamp_of_bytes(bad)
+
+
+def test_loop_of_a_bag_shorter_than_the_reset_threshold_restarts():
+    # 5 frames 0.1 s apart replayed three times: each jump back (0.4 s) is below the
+    # 1 s reset threshold; every looped frame must match, none count late.
+    sync = StampSynchronizer(2, reset_on_backwards_ns=S)
+    events = []
+    for _ in range(3):
+        for k in range(1, 6):
+            events += [(0, k * S // 10, ("a", k)), (1, k * S // 10, ("b", k))]
+    out = feed(sync, events)
+    assert [s.stamp_ns * 10 // S for s in out] == list(range(1, 6)) * 3
+    s = sync.stats()
+    assert s.resets == 2 and s.late == [0, 0] and s.matched == 15
+    assert_conserved(sync)
+
+
+def test_single_input_loop_restarts_duplicate_stays_late():
+    sync = StampSynchronizer(1)
+    for t in (10, 20, 30):
+        assert len(sync.add(0, t, t)) == 1
+    assert sync.add(0, 30, "dup") == []
+    (s,) = sync.add(0, 10, "again")
+    assert s.messages == ("again",)
+    st = sync.stats()
+    assert st.late == [1] and st.resets == 1 and st.matched == 4
+    assert_conserved(sync)
+
+
+def test_straggler_on_one_input_is_late_not_a_loop():
+    sync = StampSynchronizer(3)
+    feed(sync, [(j, t, (j, t)) for t in (10, 20) for j in range(3)])
+    assert sync.add(0, 15, "old") == [] and sync.add(1, 15, "old") == []
+    st = sync.stats()
+    assert st.resets == 0 and st.late == [1, 1, 0]
+    (s,) = feed(sync, [(j, 30, (j, 30)) for j in range(3)])
+    assert s.stamp_ns == 30
+    # the stragglers' slots are cleared by the emission: a later lone one is late again
+    assert sync.add(2, 15, "old") == [] and sync.stats().resets == 0
+    assert_conserved(sync)

@@ -28,7 +28,9 @@ from visualization_msgs.msg import MarkerArray
 PARAMS = ("proposal_mode", "classifier_path", "regressor_path", "iou_threshold",
           "proposal_score_threshold", "nms_iou_threshold", "nms_score_threshold",
           "class_names", "min_confidence", "publish_markers", "sync_mode", "sync_slop",
-          "sync_queue_size", "processing_queue_size", "diagnostics_period")
+          "sync_queue_size", "processing_queue_size", "diagnostics_period",
+          "diagnostics_window", "drop_warn_fraction", "drop_error_fraction", "input_timeout",
+          "input_error_timeout")
 
 
 @pytest.fixture(scope="session")
@@ -256,7 +258,8 @@ def test_approximate_sync_with_jittered_stamps(ros, models_dir):
 
 # ---------------------------------------------------------------- bad input
 def test_bad_input_does_not_kill_the_node(ros, models_dir):
-    node = ros.start(LmdNode, parameters=model_params(models_dir, diagnostics_period=0.2))
+    node = ros.start(LmdNode, parameters=model_params(models_dir, diagnostics_period=0.2,
+                                                      diagnostics_window=1.0))
     io = Io(ros, node)
     diag = ros.collector(DiagnosticArray, "/diagnostics")
     models = load_models(models_dir)
@@ -308,16 +311,20 @@ def test_bad_input_does_not_kill_the_node(ros, models_dir):
     assert io.dets.wait_for(2, timeout=15.0)
     assert io.dets.messages[1].detections == [] and io.quality.wait_for(2, timeout=5.0)
 
-    # 4. a valid frame afterwards is processed and clears the warnings
+    # 4. a valid frame afterwards is processed; the warnings stay shown for two
+    # publications (hold_s), then clear; the drop leaves the window; each cause counted
     sec += 1
     io.send(*frame(51, sec))
     assert io.dets.wait_for(3, timeout=15.0)
     assert io.dets.messages[2].header.stamp.sec == sec
     np.testing.assert_allclose([max(scores(d)) for d in io.dets.messages[2].detections],
                                expected(51, sec, models)[1], rtol=1e-12)
+    assert "frame_id mismatch" in node.diag.status().message
+    assert wait_until(lambda: node.diag.status().level == DiagnosticStatus.OK, timeout=10.0), \
+        node.diag.status().message
     status = node.diag.status()
-    assert status.level == DiagnosticStatus.OK, status.message
     v = diag_values(status)
+    assert v["warnings.frame_id"] == "1" and v["warnings.cloud"] == "1"
     assert node.diag.dropped == 2 and v["frames_out"] == "3" and v["detections.invalid"] == "3"
     assert "dropped.processing_error" not in v
 

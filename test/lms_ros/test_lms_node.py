@@ -29,7 +29,9 @@ PARAMS = ("classifier_path", "regressor_path", "class_names", "channels", "fov_u
           "fov_down_deg", "width", "use_ring", "ring_zero_top", "ring_field",
           "min_segment_points", "sum_tolerance", "separate_probabilities", "publish_markers",
           "sync_mode", "sync_slop", "sync_queue_size", "processing_queue_size",
-          "diagnostics_period")
+          "diagnostics_period",
+          "diagnostics_window", "drop_warn_fraction", "drop_error_fraction", "input_timeout",
+          "input_error_timeout")
 OUT_FIELDS = ["x", "y", "z", "intensity", "label", "segment", "confidence", "predicted_iou"]
 
 
@@ -214,11 +216,13 @@ def test_two_cloud_mode(ros, models_dir, frames):
     assert io.out.wait_for(1, timeout=15.0) and io.segments.wait_for(1, timeout=5.0)
     res, conf, iou, per_point = expected(points, models, probabilities=probs)
     check_output(io.out.messages[0], io.segments.messages[0], points, res, conf, iou, per_point)
-    assert node.diag.status().level == DiagnosticStatus.OK
+    status = node.diag.status()  # the dropped frame shows in the lost fraction of the window
+    assert status.level == DiagnosticStatus.WARN and "1 of 2 frames lost" in status.message
 
 
 def test_bad_input_does_not_kill_the_node(ros, models_dir, frames):
-    node = ros.start(LmsNode, parameters=params(models_dir, diagnostics_period=0.2))
+    node = ros.start(LmsNode, parameters=params(models_dir, diagnostics_period=0.2,
+                                                diagnostics_window=1.0))
     io = Io(ros, node)
     models = load_models(models_dir)
     f = frames[0]
@@ -260,14 +264,17 @@ def test_bad_input_does_not_kill_the_node(ros, models_dir, frames):
     assert io.out.wait_for(2, timeout=15.0) and io.segments.wait_for(2, timeout=5.0)
     assert io.out.messages[1].width == 0 and io.segments.messages[1].segments == []
 
-    # 4. a valid frame afterwards is processed and clears the warnings
+    # 4. a valid frame afterwards is processed; the warnings clear after two publications
+    # (hold) and the drops leave the diagnostics window
     ok = frame_cloud(f, p, sec=5)
     io.send(ok)
     assert io.out.wait_for(3, timeout=15.0) and io.segments.wait_for(3, timeout=5.0)
     check_output(io.out.messages[2], io.segments.messages[2], ok, *expected(ok, models))
+    assert wait_until(lambda: node.diag.status().level == DiagnosticStatus.OK, timeout=10.0), \
+        node.diag.status().message
     status = node.diag.status()
-    assert status.level == DiagnosticStatus.OK, status.message
     v = diag_values(status)
+    assert v["warnings.cloud"] == "2"
     assert node.diag.dropped == 2 and v["frames_out"] == "3"
     assert v["points.invalid"] == "51" and v["points.renormalized"] == "200"
     assert "dropped.processing_error" not in v

@@ -182,9 +182,9 @@ def test_refuses_to_start_without_valid_models(ros, model_dir, tmp_path):
     with pytest.raises(RuntimeError, match="cannot load its meta models.*missing"):
         ros.start(MimoNode, parameters={"classifier_path": str(tmp_path / "missing.joblib"),
                                         "regressor_path": str(tmp_path / "missing.joblib")})
-    # the points models have another feature schema: refused, not misread
+    # the points models (another feature schema, trained with use_points): refused, not misread
     c, r = (model_dir / "mimo" / p.name for p in default_model_paths(True))
-    with pytest.raises(RuntimeError, match="feature"):
+    with pytest.raises(RuntimeError, match="use_points"):
         ros.start(MimoNode, parameters={"classifier_path": str(c), "regressor_path": str(r)})
 
 
@@ -219,7 +219,7 @@ def test_outputs_equal_pipeline_and_meta_models(ros, model_dir):
 
 
 def test_stopped_head_fallback_and_recovery(ros, model_dir):
-    rig = Rig(ros, model_dir, use_variances=False, head_timeout=0.35,
+    rig = Rig(ros, model_dir, use_variances=False, head_timeout=0.25,
               processing_queue_size=20)
     node = rig.node
     frames = [make_frame(i) for i in range(14)]
@@ -233,9 +233,11 @@ def test_stopped_head_fallback_and_recovery(ros, model_dir):
     for i in range(3, 6):  # head 1 stops after frame 2: frames 3.. wait for it
         send(i, skip=(1,))
     assert not rig.dets.wait_for(4, timeout=0.3)
-    send(6, skip=(1,))  # 0.6 - 0.2 s > head_timeout: merged without head 1 from now on
+    # "now" is the second newest stamp (0.5 s): 0.5 - 0.2 s > head_timeout: merged without
+    # head 1 from now on
+    send(6, skip=(1,))
     assert rig.dets.wait_for(7)  # the waiting frames 3..6 came out
-    assert "input/head_1 sent nothing" in node.diag.status().message
+    assert "input/head_1 (subscribed as /input/head_1) sent nothing" in node.diag.status().message
     assert diag_values(node.diag.status())["inputs_stopped"] == "input/head_1"
     for i in range(7, 10):
         send(i, skip=(1,))
@@ -246,7 +248,7 @@ def test_stopped_head_fallback_and_recovery(ros, model_dir):
         send(i)
     assert rig.dets.wait_for(14, timeout=30) and rig.unc.wait_for(14, timeout=30), (
         sorted(by_stamp(rig.dets.messages)), node.inputs.sync.stats())
-    assert node.diag.status().message == "ok"
+    assert wait_until(lambda: node.diag.status().message == "ok"), node.diag.status().message
     assert diag_values(node.diag.status())["inputs_stopped"] == "none"
     unc, dets = by_stamp(rig.unc.messages), by_stamp(rig.dets.messages)
     assert sorted(unc) == [stamp(i) for i in range(14)]
@@ -284,7 +286,7 @@ def test_variance_topics(ros, model_dir):
     assert rig.unc.wait_for(6, timeout=10)
     last = by_stamp(rig.unc.messages)[stamp(5)]
     assert np.isnan([c.aleatoric_total_variance for c in last.clusters]).all()
-    assert "variance sent nothing" in rig.node.diag.status().message
+    assert "variance (subscribed as /input/head_0/variance) sent nothing" in rig.node.diag.status().message
 
 
 def test_points_input(ros, model_dir):
@@ -332,7 +334,7 @@ def test_malformed_heads_do_not_kill_the_node(ros, model_dir):
     rig.send(heads)
     assert rig.dets.wait_for(3, timeout=10)
     assert len(rig.dets.messages[-1].detections) > 5
-    assert rig.node.diag.status().message == "ok"
+    assert wait_until(lambda: rig.node.diag.status().message == "ok"), rig.node.diag.status().message
     assert "dropped.processing_error" not in diag_values(rig.node.diag.status())
 
 

@@ -350,22 +350,26 @@ def test_liveness_declares_a_silent_input_stopped_and_recovers():
     for t in (3, 4, 5, 6):
         a = lv.arrival(0, t * S // 10, last_matched_ns=2 * S // 10)
         assert a.stopped == [] and a.placeholders == []
-    a = lv.arrival(0, 8 * S // 10, last_matched_ns=2 * S // 10)  # 0.8 - 0.2 > 0.5
+    # one message 0.6 s ahead is not enough evidence ("now" is the second newest stamp)
+    a = lv.arrival(0, 8 * S // 10, last_matched_ns=2 * S // 10)
+    assert a.stopped == []
+    a = lv.arrival(0, 9 * S // 10, last_matched_ns=2 * S // 10)  # 0.8 - 0.2 > 0.5
     assert a.stopped == [1] and lv.stopped == [1]
-    assert a.placeholders == [(1, t * S // 10) for t in (3, 4, 5, 6, 8)]  # the waiting ones
-    a = lv.arrival(0, 9 * S // 10, last_matched_ns=8 * S // 10)
-    assert a.placeholders == [(1, 9 * S // 10)]
+    assert a.placeholders == [(1, t * S // 10) for t in (3, 4, 5, 6, 8, 9)]  # the waiting ones
+    a = lv.arrival(0, 10 * S // 10, last_matched_ns=9 * S // 10)
+    assert a.placeholders == [(1, 10 * S // 10)]
     # input 1 is back: live again, no more placeholders
-    a = lv.arrival(1, 10 * S // 10, last_matched_ns=9 * S // 10)
+    a = lv.arrival(1, 11 * S // 10, last_matched_ns=10 * S // 10)
     assert a.resumed == [1] and lv.stopped == []
-    assert lv.arrival(0, 10 * S // 10, last_matched_ns=9 * S // 10).placeholders == []
+    assert lv.arrival(0, 11 * S // 10, last_matched_ns=10 * S // 10).placeholders == []
 
 
 def test_liveness_never_seen_input_and_reset():
     lv = InputLiveness(3, timeout_ns=S)
     lv.arrival(0, 10 * S)
     lv.arrival(1, 10 * S)
-    a = lv.arrival(0, 11 * S + 1, last_matched_ns=None)
+    assert lv.arrival(0, 11 * S + 1, last_matched_ns=None).stopped == []
+    a = lv.arrival(0, 11 * S + 2, last_matched_ns=None)
     assert a.stopped == [1, 2]  # 2 never sent anything; 1 is also > 1 s behind
     assert (2, 11 * S + 1) in a.placeholders
     # a looped bag: stamps jump back, everything is forgotten
@@ -384,3 +388,31 @@ def test_liveness_approximate_mode_one_placeholder_per_frame():
         got += lv.arrival(0, t).placeholders
         got += lv.arrival(1, t + 3_000_000).placeholders  # 3 ms later, same frame
     assert [j for j, _ in got] == [2] * len({s // (S // 10) for _, s in got})
+
+
+def test_liveness_one_future_stamp_stops_nothing():
+    # 2 heads + 2 variance inputs at 10 Hz; one variance message stamped 0.8 s ahead
+    lv = InputLiveness(4, timeout_ns=S // 2)
+    changes = []
+    for k in range(20):
+        t = k * S // 10
+        for j in range(4):
+            stamp = t + 8 * S // 10 if (k, j) == (5, 2) else t
+            a = lv.arrival(j, stamp, last_matched_ns=t - S // 10 if k else None)
+            changes += a.stopped + a.resumed + [p[0] for p in a.placeholders]
+    assert changes == [] and lv.stopped == []
+
+
+def test_liveness_short_loop_resets():
+    # a 0.4 s bag looped: the jump back is below reset_ns, but every input goes back
+    lv = InputLiveness(2, timeout_ns=S // 2)
+    for t in range(5):
+        for j in range(2):
+            lv.arrival(j, t * S // 10)
+    assert lv.arrival(0, 0).resumed == [] and lv._newest[0] == 4 * S // 10
+    lv.arrival(1, 0)  # both went back: everything forgotten
+    assert lv._newest == [None, 0]
+    for t in range(1, 5):  # and the second pass runs as the first did
+        for j in range(2):
+            a = lv.arrival(j, t * S // 10)
+            assert a.stopped == [] and a.placeholders == []
