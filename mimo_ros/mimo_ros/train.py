@@ -8,8 +8,13 @@ own features): ``mimo`` on the cluster statistics (``MimoSettings().feature_name
 (``use_points=True``). Classifier target: BEV IoU with the best ground-truth box of the
 detection's class >= 0.5; regressor target: that IoU. Estimator: ``meta_model`` kind
 (XGBoost by default). Before the final fit on all data, grouped cross validation over the
-sequences (``--folds``) gives the metrics written into the manifests and ``MODEL_CARD.md``
-(``mimo-eval --model-card`` adds the held-out evaluation to the card).
+sequences (``--cv-folds``, alias ``--folds``) gives the metrics written into the manifests
+and ``MODEL_CARD.md`` (``mimo-eval --model-card`` adds the held-out evaluation to the
+card). ``--cv-folds 0`` trains without it (said in manifests and card); it needs at least
+two sequences (bags), so one bag trains with ``--cv-folds 0`` and otherwise ends with the
+reason (exit 2, no traceback), as for other bad data. Each pair's manifest records the
+merge settings with its own ``use_points``; the card names the bags and calls them
+simulated only when they are the project's (``meta_model.simulated_sources``).
 """
 from __future__ import annotations
 
@@ -24,6 +29,7 @@ import numpy as np
 
 from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as qm
+from lidar_quality_core.model_store import ModelStoreError
 from lidar_quality_core.progress import Progress
 
 from .dataset import TP_IOU, MimoDataset, load_bags
@@ -49,7 +55,8 @@ def train_pair(ds: MimoDataset, use_points: bool, out_dir, *, kind: str = "xgboo
     groups = ds.group
     res = {"prefix": PREFIXES[use_points], "features": list(names), "n": int(len(X)),
            "positive_rate": float(y_cls.mean()) if len(X) else float("nan")}
-    if len(np.unique(groups)) >= 2 and folds >= 2:
+    folds = meta_model.cv_fold_count(groups, folds, what="sequences (bags)")
+    if folds:
         cv_c = meta_model.cross_validate(X, y_cls, groups, task="classification", kind=kind,
                                          n_folds=folds, seed=seed, progress=progress)
         cv_r = meta_model.cross_validate(X, y_iou, groups, task="regression", kind=kind,
@@ -61,13 +68,24 @@ def train_pair(ds: MimoDataset, use_points: bool, out_dir, *, kind: str = "xgboo
                 "groups": ds.groups, "frames": int(ds.n_frames), "rows": int(len(X)),
                 "classifier_target": f"BEV IoU with the best GT box of the detection's class "
                                      f">= {TP_IOU}", "regressor_target": "that IoU",
-                "kind": kind, "seed": seed, "merge_settings": ds.info.get("settings")}
+                "kind": kind, "seed": seed, "cv_folds": folds,
+                "merge_settings": {**(ds.info.get("settings") or {}), "use_points": use_points},
+                "data": _data(ds)}
+    if not folds:
+        training["cross_validation"] = "skipped: --cv-folds 0"
     cpath, rpath = meta_model.save_pair(out_dir, res["prefix"], clf, reg, names,
                                         training_data=training,
                                         classifier_metrics=res.get("classifier_cv"),
                                         regressor_metrics=res.get("regressor_cv"))
     res["paths"] = [str(cpath), str(rpath)]
     return res
+
+
+def _data(ds: MimoDataset) -> dict:
+    """``{"sources": [{"kind": "perception_bag", "path"}], "simulated"}``."""
+    paths = [s["path"] for s in ds.info.get("sources", [])]
+    return {"sources": [{"kind": "perception_bag", "path": p} for p in paths],
+            "simulated": meta_model.simulated_sources(paths)}
 
 
 def _baseline(ds: MimoDataset) -> dict:
@@ -83,10 +101,14 @@ def train(data: Sequence, out_dir, *, cache_dir=None, kind: str = "xgboost", fol
     t0 = time.monotonic()
     ds = load_bags(data, cache_dir=cache_dir, progress=not quiet)
     if len(ds) == 0:
-        raise SystemExit("no merged detections in the training data")
+        raise ValueError(f"no merged detections in the training data ({ds.n_frames} frames)")
+    meta_model.cv_fold_count(ds.group, folds, what="sequences (bags)")  # before any fit
+    if not folds and not quiet:
+        sys.stderr.write("no cross validation (--cv-folds 0)\n")
     out = Path(out_dir)
     summary = {"data": ds.summary(), "baseline_merged_score": _baseline(ds), "pairs": [],
-               "heads": (ds.info.get("settings") or {}).get("num_heads")}
+               "heads": (ds.info.get("settings") or {}).get("num_heads"),
+               "sources": _data(ds)}
     for use_points in (False, True):
         bar = Progress(f"{PREFIXES[use_points]}: cross validation folds", None, not quiet)
         summary["pairs"].append(train_pair(ds, use_points, out, kind=kind, folds=folds,
@@ -118,6 +140,15 @@ def model_card(summary: dict, command: str = "") -> str:
                      _fmt_ms(c, "auprc"), _fmt_ms(r, "r2"), _fmt_ms(r, "mae")])
     folds = next((p["classifier_cv"]["cv_folds"] for p in summary["pairs"]
                   if "classifier_cv" in p), 0)
+    src = summary.get("sources") or {"sources": [], "simulated": False}
+    bags = ", ".join(f"`{s['path']}`" for s in src["sources"])
+    if src["simulated"]:
+        data_line = (f"Simulated perception bags (`lidar_sim` scenes, reference perception with "
+                     f"{summary.get('heads')} heads; `make meta-data`): {bags}.")
+        trained_on = "simulated scans and the reference multi-head detector"
+    else:
+        data_line = f"Perception bags with {summary.get('heads')} detector heads: {bags}."
+        trained_on = "the perception bags named above (their detector heads and scenes)"
     lines = [
         "# LiDAR-MIMO meta models (`models/mimo`)",
         "",
@@ -137,8 +168,9 @@ def model_card(summary: dict, command: str = "") -> str:
         "",
         "## Training data",
         "",
-        f"Simulated perception bags (`lidar_sim` scenes, reference perception with "
-        f"{summary.get('heads')} heads): {d['groups']} sequences, {d['frames']} frames, "
+        data_line,
+        "",
+        f"{d['groups']} sequences, {d['frames']} frames, "
         f"{d['merged']} merged detections of which {d['merged_tp']} are TPs "
         f"(BEV IoU >= {TP_IOU} with a ground-truth box of their class), {d['gt_boxes']} "
         "ground-truth boxes. Sources and settings are in the manifests (`training_data`).",
@@ -149,8 +181,9 @@ def model_card(summary: dict, command: str = "") -> str:
         "learning rate 0.05), fitted on all training sequences. Missing values (e.g. point "
         "features without a cloud) go the learnt default way.",
         "",
-        f"Grouped cross validation over the sequences ({folds} folds, mean ± std of the "
-        "validation folds):",
+        (f"Grouped cross validation over the sequences ({folds} folds, mean ± std of the "
+         "validation folds):" if folds else
+         "No cross validation (`--cv-folds 0`): the table is empty."),
         "",
         markdown_table(["pair", "features", "AUROC", "ECE", "AUPRC", "IoU R²", "IoU MAE"],
                        rows).rstrip(),
@@ -160,10 +193,11 @@ def model_card(summary: dict, command: str = "") -> str:
         "",
         "## Limits",
         "",
-        "Trained on simulated scans and the reference multi-head detector only: another "
-        "detector, sensor or scene distribution needs retraining (`mimo-train` on its own "
-        "perception bags). The confidence is calibrated for the merge settings in the "
-        "manifests (2 heads, consensus voting, eps 0.5); other settings change the clusters.",
+        f"Trained on {trained_on} only: another detector, sensor or scene distribution needs "
+        "retraining (`mimo-train` on its own perception bags). The confidence is calibrated "
+        "for the merge settings in the manifests (`training_data.merge_settings`); the node "
+        "refuses another class list or `use_points` and warns about other merge settings, "
+        "which change the clusters.",
         "",
         "## Reproduce",
         "",
@@ -194,13 +228,18 @@ def main(argv=None) -> int:
     add_data_arguments(p, "data/perception/meta_train")
     p.add_argument("--out", default="models/mimo", help="model directory")
     p.add_argument("--kind", default="xgboost", choices=meta_model.KINDS)
-    p.add_argument("--folds", type=int, default=6, help="grouped CV folds (0: no CV)")
+    p.add_argument("--cv-folds", "--folds", dest="folds", type=meta_model.cv_folds_arg,
+                   default=6, help="grouped CV folds over the sequences (0: no CV)")
     p.add_argument("--seed", type=int, default=0)
     a = p.parse_args(argv)
     command = "mimo-train " + " ".join(shlex.quote(x) for x in (argv if argv is not None
                                                                else sys.argv[1:]))
-    s = train(a.data, a.out, cache_dir=a.cache or None, kind=a.kind, folds=a.folds, seed=a.seed,
-              quiet=a.quiet, command=command)
+    try:
+        s = train(a.data, a.out, cache_dir=a.cache or None, kind=a.kind, folds=a.folds,
+                  seed=a.seed, quiet=a.quiet, command=command)
+    except (ValueError, OSError, ModelStoreError) as exc:  # bad data: say why, no traceback
+        print(f"mimo-train: {exc}", file=sys.stderr)
+        return 2
     d = s["data"]
     print(f"mimo-train: {d['groups']} sequences, {d['frames']} frames, {d['merged']} merged "
           f"detections ({d['merged_tp']} TP) in {s['seconds']:.0f} s")

@@ -62,3 +62,62 @@ def test_models_load_through_the_store_and_rank_the_training_data(trained):
     with pytest.raises(ModelStoreError):
         MetaModels(out / "mimo_classifier.joblib", out / "mimo_regressor.joblib",
                    MimoSettings(use_points=True).feature_names())
+
+
+# ---------------------------------------------------------------- issue 14: no silent failure
+def test_each_pair_records_its_own_use_points(trained):
+    _, out, _ = trained
+    for prefix, use_points in (("mimo", False), ("mimo_points", True)):
+        man = json.loads((out / f"{prefix}_classifier.joblib.manifest.json").read_text())
+        assert man["training_data"]["merge_settings"]["use_points"] is use_points
+        assert man["training_data"]["cv_folds"] == 2
+    # and the node's settings check accepts each pair for its own use_points
+    for use_points, prefix in ((False, "mimo"), (True, "mimo_points")):
+        s = MimoSettings(use_points=use_points)
+        mm = MetaModels(out / f"{prefix}_classifier.joblib", out / f"{prefix}_regressor.joblib",
+                        s.feature_names(), settings=s, method="mimo")
+        assert mm.warnings == []
+
+
+def test_model_card_names_the_bags_not_simulated(trained):
+    bags, out, _ = trained
+    card = (out / "MODEL_CARD.md").read_text()
+    paths = ", ".join(f"`{p}`" for p in sorted(bags.iterdir()))
+    assert f"Perception bags with 2 detector heads: {paths}." in card
+    assert "imulated" not in card and "Trained on the perception bags named above" in card
+
+
+def test_cv_folds_0_and_one_bag(trained, tmp_path, capsys):
+    bags, _, root = trained
+    one = sorted(bags.iterdir())[:1]
+    args = ["--data", *map(str, one), "--cache", str(root / "cache"), "--quiet"]
+    assert main([*args, "--out", str(tmp_path / "a")]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("mimo-train: grouped cross validation needs at least 2 sequences "
+                          "(bags), the training data has 1")
+    assert "--cv-folds 0" in err and "Traceback" not in err
+    assert not (tmp_path / "a").exists()
+    assert main([*args, "--out", str(tmp_path / "b"), "--cv-folds", "0"]) == 0
+    man = json.loads((tmp_path / "b" / "mimo_classifier.joblib.manifest.json").read_text())
+    assert man["training_data"]["cv_folds"] == 0 and man["metrics"] == {}
+    assert man["training_data"]["cross_validation"] == "skipped: --cv-folds 0"
+    card = (tmp_path / "b" / "MODEL_CARD.md").read_text()
+    assert "No cross validation (`--cv-folds 0`)" in card
+    with pytest.raises(SystemExit):
+        main([*args, "--out", str(tmp_path / "c"), "--cv-folds", "1"])
+
+
+def test_model_card_says_simulated_for_our_bags(trained, tmp_path, monkeypatch):
+    from lidar_quality_core import meta_model
+
+    bags, _, root = trained
+    monkeypatch.setattr(meta_model, "SIMULATED_DATA_DIR", bags.parent)
+    (bags / ".done").touch()  # as `make meta-data` leaves a simulated split
+    try:
+        assert main(["--data", str(bags), "--cache", str(root / "cache"), "--quiet",
+                     "--out", str(tmp_path), "--cv-folds", "0"]) == 0
+    finally:
+        (bags / ".done").unlink()
+    card = (tmp_path / "MODEL_CARD.md").read_text()
+    assert "Simulated perception bags (`lidar_sim` scenes, reference perception with 2 heads" \
+        in card and "Trained on simulated scans" in card
