@@ -366,3 +366,22 @@ def test_bad_parameter_exits_with_code_2(ros):
 def test_launch_file():
     from node_shell_checks import assert_launch_file
     assert_launch_file("mimo_ros", "mimo_node")
+
+
+def test_one_future_stamped_message_costs_at_most_its_frame(ros, model_dir):
+    # issue 14 repro: one head_0/variance stamped 0.8 s ahead left 1 of the next 10 valid
+    # frames out (it took that stamp as "now" and declared every other input stopped)
+    rig = Rig(ros, model_dir, head_timeout=0.5, processing_queue_size=20)
+    frames = [make_frame(i) for i in range(12)]
+    rig.send(frames[0][1], frames[0][2])
+    assert rig.dets.wait_for(1)
+    bad = box_variance_array(header(1 + 8), np.zeros((0, 7)), ids=[])  # stamped 0.8 s ahead
+    before = received(rig.node, "input/head_0/variance")
+    rig.vars[0].publish(bad)
+    assert wait_until(lambda: received(rig.node, "input/head_0/variance") > before)
+    for i in range(1, 11):
+        rig.send(frames[i][1], frames[i][2])
+    assert rig.dets.wait_for(11, timeout=20), len(rig.dets.messages)
+    assert sorted(by_stamp(rig.dets.messages)) == [stamp(i) for i in range(11)]
+    assert rig.node.liveness.stopped == []
+    assert diag_values(rig.node.diag.status())["inputs_stopped"] == "none"

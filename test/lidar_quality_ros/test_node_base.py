@@ -1,0 +1,175 @@
+"""QualityNode on the three real nodes (shipped models, real middleware): a required input
+that never arrives is named (log on /rosout, diagnostics WARN); stamps that never match
+are named with their offset; every declared parameter is applied or refused by a real
+SetParameters call; two nodes of one name are reported; non-finite parameters are
+refused by name."""
+import math
+import time
+
+import pytest
+from diagnostic_msgs.msg import DiagnosticStatus
+from lidar_quality_msgs.msg import BoxVarianceArray
+from lms_ros.lms_node import LmsNode
+from lmd_ros.lmd_node import LmdNode
+from mimo_ros.mimo_node import MimoNode
+from node_shell_checks import wait_until
+from rcl_interfaces.msg import Log
+from rcl_interfaces.srv import GetParameters, ListParameters, SetParameters
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import PointCloud2
+from vision_msgs.msg import Detection3DArray
+
+WARN = DiagnosticStatus.WARN
+NODES = {"lmd": LmdNode, "lms": LmsNode, "mimo": MimoNode}
+
+
+def stamped(msg_type, k, offset_ns=0):
+    """An empty message of frame ``k`` (10 Hz stamps from 100 s)."""
+    msg = msg_type()
+    msg.header.frame_id = "lidar"
+    msg.header.stamp.sec, msg.header.stamp.nanosec = divmod(
+        100_000_000_000 + k * 100_000_000 + offset_ns, 1_000_000_000)
+    return msg
+
+
+def publish_until(ros, node, inputs, done, timeout=6.0):
+    """Publish ``inputs`` ({topic: (type, stamp offset ns)}) at 10 Hz until ``done()``."""
+    pubs = {t: ros.sensor_publisher(m, t) for t, (m, _) in inputs.items()}
+    for p in pubs.values():
+        assert ros.wait_for_match(p)
+    t0, k = time.monotonic(), 0
+    while time.monotonic() - t0 < timeout and not done():
+        for t, (m, off) in inputs.items():
+            pubs[t].publish(stamped(m, k, off))
+        k += 1
+        time.sleep(0.1)
+    return time.monotonic() - t0
+
+
+def logged(log, node, *texts):
+    return any(m.name == node.get_name() and all(t in m.msg for t in texts)
+               for m in list(log.messages))
+
+
+MISSING = {  # node, parameters, inputs published, the input left out (resolved name)
+    "lmd": ("lmd", {}, {"input/points": PointCloud2, "input/detections": Detection3DArray},
+            "/input/proposals"),
+    "lms": ("lms", {"separate_probabilities": True}, {"input/points": PointCloud2},
+            "/input/probabilities"),
+    "mimo": ("mimo", {}, {"input/head_0": Detection3DArray,
+                          "input/head_0/variance": BoxVarianceArray,
+                          "input/head_1/variance": BoxVarianceArray}, "/input/head_1"),
+}
+
+
+@pytest.mark.parametrize("case", MISSING)
+def test_a_required_input_that_never_arrives_is_named(ros, case):
+    kind, params, sent, missing = MISSING[case]
+    log = ros.collector(Log, "/rosout")
+    node = ros.start(NODES[kind], parameters=params)
+    took = publish_until(ros, node, {t: (m, 0) for t, m in sent.items()},
+                         lambda: logged(log, node, missing))
+    assert logged(log, node, missing, "remap"), [m.msg for m in log.messages]
+    assert took < 5.0
+    status = node.diag.status()
+    assert status.level >= WARN and missing in status.message
+
+
+def test_lmd_missing_input_escalates_to_error(ros):
+    node = ros.start(LmdNode, parameters={"input_timeout": 0.5, "input_error_timeout": 1.5})
+    publish_until(ros, node, {"input/points": (PointCloud2, 0),
+                              "input/detections": (Detection3DArray, 0)},
+                  lambda: node.diag.status().level == DiagnosticStatus.ERROR)
+    assert node.diag.status().level == DiagnosticStatus.ERROR
+    assert "/input/proposals" in node.diag.status().message
+    assert "proposal_mode: none" in node.diag.status().message
+
+
+OFFSET = {  # inputs stamped 10 ms apart: nothing ever matches
+    "lmd": ("lmd", {"proposal_mode": "none"},
+            {"input/points": (PointCloud2, 0), "input/detections": (Detection3DArray, 10_000_000)},
+            "between input/points and input/detections is 10.0 ms"),
+    "mimo": ("mimo", {"use_variances": False},
+             {"input/head_0": (Detection3DArray, 0), "input/head_1": (Detection3DArray, 10_000_000)},
+             "between input/head_0 and input/head_1 is 10.0 ms"),
+}
+
+
+@pytest.mark.parametrize("case", OFFSET)
+def test_stamps_a_little_apart_are_named_with_the_offset(ros, case):
+    kind, params, inputs, text = OFFSET[case]
+    log = ros.collector(Log, "/rosout")
+    node = ros.start(NODES[kind], parameters=params)
+    publish_until(ros, node, inputs, lambda: logged(log, node, text))
+    assert logged(log, node, text, "sync_slop"), [m.msg for m in log.messages]
+    assert node.diag.status().level >= WARN
+    assert node.diag.frames_out == 0
+
+
+# ------------------------------------------------------------------ parameters
+def call(ros, node, srv_type, service, request):
+    cli = ros.node.create_client(srv_type, f"{node.get_fully_qualified_name()}/{service}")
+    assert cli.wait_for_service(timeout_sec=10.0)
+    fut = cli.call_async(request)
+    assert wait_until(fut.done, timeout=10.0)
+    return fut.result()
+
+
+def set_param(ros, node, name, value):
+    req = SetParameters.Request(parameters=[Parameter(name, value=value).to_parameter_msg()])
+    return call(ros, node, SetParameters, "set_parameters", req).results[0]
+
+
+# run-time parameters and how to see their effect
+LIVE = {
+    "lmd": {"min_confidence": (0.7, 1.5, lambda n: n.processor.min_confidence == 0.7)},
+    "mimo": {"output_scores": ("merged", "fancy", lambda n: n.output_scores == "merged")},
+    "lms": {},
+}
+
+
+@pytest.mark.parametrize("kind", NODES)
+def test_every_parameter_is_applied_or_refused(ros, kind):
+    node = ros.start(NODES[kind])
+    names = call(ros, node, ListParameters, "list_parameters",
+                 ListParameters.Request()).result.names
+    assert len(names) > 15
+    values = call(ros, node, GetParameters, "get_parameters",
+                  GetParameters.Request(names=names)).values
+    for name, msg in zip(names, values):
+        current = Parameter.from_parameter_msg(
+            type("P", (), {"name": name, "value": msg})()).value
+        if name in LIVE[kind]:
+            good, bad, took_effect = LIVE[kind][name]
+            r = set_param(ros, node, name, bad)
+            assert not r.successful and name in r.reason
+            r = set_param(ros, node, name, good)
+            assert r.successful and took_effect(node), name
+        elif name == "use_sim_time":  # rclpy's own: applied to the node's clock
+            assert set_param(ros, node, name, True).successful
+            assert node.get_clock().ros_time_is_active
+            assert set_param(ros, node, name, False).successful
+            assert not node.get_clock().ros_time_is_active
+        else:  # read at start: a change is refused with the reason, never ignored
+            r = set_param(ros, node, name, current)
+            assert not r.successful and "read-only" in r.reason, (name, r.reason)
+            desc = node.describe_parameter(name)
+            assert desc.read_only, name
+
+
+# ------------------------------------------------------------------ start-up
+@pytest.mark.parametrize("kind,name", [("lmd", "sync_slop"), ("lms", "diagnostics_period"),
+                                       ("mimo", "head_timeout"), ("mimo", "eps")])
+def test_non_finite_parameters_are_refused_by_name(ros, kind, name):
+    with pytest.raises(ValueError, match=f"'{name}'"):
+        ros.start(NODES[kind], parameters={name: math.inf})
+
+
+def test_two_nodes_of_the_same_name_are_reported(ros):
+    log = ros.collector(Log, "/rosout")
+    a = ros.start(LmdNode, parameters={"proposal_mode": "none"})
+    b = ros.start(LmdNode, parameters={"proposal_mode": "none"})
+    assert wait_until(lambda: "duplicate_name" in a.diag.warning_keys()
+                      and "duplicate_name" in b.diag.warning_keys(), timeout=15.0)
+    assert "2 nodes are named /lmd_node" in a.diag.status().message
+    assert wait_until(lambda: logged(log, a, "2 nodes are named /lmd_node"), timeout=5.0)
