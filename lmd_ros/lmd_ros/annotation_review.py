@@ -376,7 +376,8 @@ def main(argv=None) -> int:
     cpath, rpath = default_model_paths(args.mode)
     if args.models is not None:
         cpath, rpath = args.models / cpath.name, args.models / rpath.name
-    conf, pred = MetaModels(cpath, rpath, settings.feature_names()).predict(ds.X)
+    conf, pred = MetaModels(cpath, rpath, settings.feature_names(), settings=settings,
+                            method="lmd").predict(ds.X)
     errors = inject_errors(ds, seed=args.seed) if args.inject_errors else None
     res = review(ds, conf, pred, errors=errors, ks=args.k, seed=args.seed)
     export(ds, res, conf, pred, args.out, k=max(args.k))

@@ -115,7 +115,8 @@ def heldout(train_ds: SegmentDataset, test_ds: SegmentDataset, models_dir, *,
     on ``test_ds``; predictions under ``"pred"``."""
     cpath = Path(models_dir) / f"{PREFIX}_classifier.joblib"
     rpath = Path(models_dir) / f"{PREFIX}_regressor.joblib"
-    models = meta_model.MetaModels(cpath, rpath, test_ds.names)
+    models = meta_model.MetaModels(cpath, rpath, test_ds.names,
+                                   settings=test_ds.info["settings"], method="lms")
     y, t = test_ds.tp.astype(float), test_ds.iou_adj
     pred = {"lms": models.predict(test_ds.X)}
     for s in FEATURE_SETS[1:]:
@@ -176,7 +177,8 @@ def figure1(path, source, index: int, models_dir, settings, *, ignore_label=0,
     inp, gt, res, iou, iou_adj = load_frame(source, index, settings, ignore_label=ignore_label,
                                             ring_from=ring_from)
     models = meta_model.MetaModels(Path(models_dir) / f"{PREFIX}_classifier.joblib",
-                                   Path(models_dir) / f"{PREFIX}_regressor.joblib", res.names)
+                                   Path(models_dir) / f"{PREFIX}_regressor.joblib", res.names,
+                                   settings=settings, method="lms")
     conf, piou = models.predict(res.features)
     R, C = res.source.shape
     cols = slice(C // 4, C - C // 4)                     # column C/2 looks forward (+x)
@@ -404,7 +406,8 @@ def other_rows(a, settings) -> dict:
                        ring_from=alt, block_frames=a.block_frames,
                        cache_dir=Path(a.cache) if a.cache else None, quiet=a.quiet)
     models = meta_model.MetaModels(a.models / f"{PREFIX}_classifier.joblib",
-                                   a.models / f"{PREFIX}_regressor.joblib", ds.names)
+                                   a.models / f"{PREFIX}_regressor.joblib", ds.names,
+                                   settings=settings, method="lms")
     conf, piou = models.predict(ds.X)
     return {"ring_from": alt, "n_segments": len(ds),
             "classification": task_metrics("classification", ds.tp.astype(float), conf),

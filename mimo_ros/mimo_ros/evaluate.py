@@ -590,7 +590,8 @@ def run(data, models_dir, out, *, cache_dir=None, docs=None, model_card=None,
         r = Path(models_dir) / f"{prefix}_regressor.joblib"
         if c.exists() or r.exists() or not use_points:
             models[use_points] = meta_model.MetaModels(
-                c, r, MimoSettings(use_points=use_points).feature_names())
+                c, r, MimoSettings(use_points=use_points).feature_names(), method="mimo",
+                settings={**ds.info["settings"], "use_points": use_points})
     res = evaluate(ds, models, es_samples=es_samples, seed=seed, heading_aware=heading_aware,
                    progress=not quiet)
     out = Path(out)
