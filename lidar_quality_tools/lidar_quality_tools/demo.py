@@ -308,16 +308,19 @@ def likely_causes(v: dict, input_period_ms: float | None) -> list[str]:
         causes.append(cpu)
     causes += [f"{n} {DROP_REASONS.get(r, r)}" for r, n in sorted(reasons.items())]
     ns = "/" + v["node"] if "node" in v else ""
+    lost = []
     for key, inp in (v.get("inputs") or {}).items():
         got = _num(d, f"received.{key}", f"received.{inp['topic']}", f"received.{ns}/{key}")
         if got is not None and got < inp["published"]:
-            causes.append(f"input lost on the way: received {got:.0f} of {inp['published']} "
-                          f"messages on {inp['topic']} ({key})")
-    for k, n in sorted(d.items()):
-        if k.startswith(("sync.late.", "sync.dropped.")) and _num(d, k):
-            kind, topic = k.split(".", 2)[1:]
-            causes.append(f"stamp matching: {n} message(s) on {topic} {kind} (inputs of a "
-                          "frame arrived too late or not at all)")
+            lost.append(f"{got:.0f} of {inp['published']} on {inp['topic']}")
+    if lost:
+        causes.append("input lost on the way: received " + ", ".join(lost))
+    for kind in ("late", "dropped"):
+        unmatched = [f"{n} on {k.split('.', 2)[2]}" for k, n in sorted(d.items())
+                     if k.startswith(f"sync.{kind}.") and _num(d, k)]
+        if unmatched:
+            causes.append(f"stamp matching: message(s) {kind} ({', '.join(unmatched)}): a "
+                          "frame's inputs came too late or not at all")
     node_out = _num(d, "frames_out")
     if node_out is not None and node_out > v["frames_out"]:
         causes.append(f"outputs lost on the way: the node published {node_out:.0f}, the "
@@ -552,11 +555,15 @@ def main(argv=None) -> int:
     summary["elapsed_s"] = round(time.monotonic() - t0, 1)
     (out / "summary.json").write_text(json.dumps(jsonable(summary), indent=1))
     print_summary(summary)
-    if code != EXIT_OK:
-        what = "FAILED" if code == EXIT_FAILED else "frames dropped"
-        print(f"demo: exit {code} ({what}): " + " | ".join(
-            x for x in lines if not x.startswith(("note", "OK"))) +
-            f" (logs in {out / 'logs'})", file=sys.stderr)
+    if code == EXIT_FAILED:
+        print(f"demo: exit {code} (failed): " + " | ".join(
+            x[len("FAILED: "):] for x in lines if x.startswith("FAILED")), file=sys.stderr)
+    elif code == EXIT_DROPPED:
+        over = [f"{n}_node {v['dropped']} of {v['frames_in']}"
+                for n, v in summary["nodes"].items()
+                if v["dropped"] > a.max_drop_fraction * v["frames_in"]]
+        print(f"demo: exit {code} (frames dropped: {', '.join(over)}; causes above; logs in "
+              f"{out / 'logs'})", file=sys.stderr)
     return code
 
 

@@ -107,7 +107,8 @@ def test_dropped_frames_exit_4_and_are_said_first(dropped_run):
     lmd = next(x for x in said if x.split()[3] == "lmd_node")
     assert f"dropped {nodes['lmd']['dropped']} of {N_FRAMES} frames" in lmd
     assert "likely cause: " in lmd and "1 frame(s) with a malformed input cloud" in lmd
-    assert "exit 4 (frames dropped)" in r.stderr and "lmd_node" in r.stderr
+    assert f"exit 4 (frames dropped: lmd_node {nodes['lmd']['dropped']} of {N_FRAMES}" \
+        in r.stderr
     report = (out / "report.md").read_text()
     assert report.index("Exit code 4") < report.index("lmd_node dropped") < report.index(
         "## Frames and latency")
@@ -156,10 +157,13 @@ def test_likely_cause_from_the_node_diagnostics(dropped_run):
     d["received.input/head_1"] = str(mimo["inputs"]["input/head_1"]["published"] - 2)
     causes = likely_causes(mimo, p99 * 2)
     assert causes[0] == (f"input lost on the way: received {d['received.input/head_1']} of "
-                         f"{mimo['inputs']['input/head_1']['published']} messages on "
-                         "/perception/head_1 (input/head_1)")
+                         f"{mimo['inputs']['input/head_1']['published']} on /perception/head_1")
     assert causes[1] == (f"outputs lost on the way: the node published {n}, the recorder "
                          f"received {n - 2}")
+    d["sync.dropped.input/head_0"] = "1"
+    assert likely_causes(mimo, p99 * 2)[1] == (
+        "stamp matching: message(s) dropped (1 on input/head_0): a frame's inputs came too "
+        "late or not at all")
 
 
 def test_not_a_perception_bag(bags, tmp_path):
