@@ -21,7 +21,7 @@ leaked=$(tcpdump -nn -r "$cap/leak.pcap" 2>/dev/null | wc -l)
 if [ "$leaked" -gt 0 ]; then
   echo "loopback_guard: $leaked UDP packet(s) left loopback:" >&2
   tcpdump -nn -r "$cap/leak.pcap" 2>/dev/null | head -20 >&2
-  [ "$code" -eq 0 ] && code=3
+  code=3  # a leak outranks the command's own failure (callers tolerate some of those)
 else
   echo "loopback_guard: 0 DDS/UDP packets outside loopback while the command ran" >&2
 fi
