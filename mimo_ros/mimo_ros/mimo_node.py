@@ -224,10 +224,15 @@ class MimoNode(QualityNode):
         header = present[0].header
         out = process_frame(header, heads, variances, self.settings, self.models,
                             cloud_msg=cloud, scores=self.output_scores, serialized=True)
+        issues = {}
         if out.frame.issues:
-            self.warn_input("heads", "; ".join(out.frame.issues))
-        else:
-            self.diag.clear("heads")
+            issues["heads"] = "; ".join(out.frame.issues)
+        if cloud is not None and msgs[-1].header.frame_id != header.frame_id:
+            # the cloud arrives decoded (xyz, intensity): its frame is compared here
+            issues["cloud_frame_id"] = (f"input/points frame_id {msgs[-1].header.frame_id!r} "
+                                        f"differs from the heads' {header.frame_id!r} "
+                                        "(point features computed as if equal)")
+        self.report_issues(issues)
         self.pub_detections.publish(out.detections)
         self.pub_uncertainty.publish(out.uncertainty)
         # markers cost about as much as the rest of the frame: only for a listener

@@ -304,6 +304,13 @@ def test_points_input(ros, model_dir):
         assert np.isfinite(ref.frame.features[:, -5:]).all()
         np.testing.assert_allclose([c.confidence for c in got[stamp(i)].clusters],
                                    ref.confidence)
+    assert "cloud_frame_id" not in rig.node.diag.warning_keys()
+    # a cloud in another frame than the heads: processed, and said
+    _, heads, variances, cloud = make_frame(2)
+    cloud.header = Header(stamp=cloud.header.stamp, frame_id="base_link")  # not the heads'
+    rig.send(heads, variances, cloud)
+    assert rig.unc.wait_for(3)
+    assert "input/points frame_id 'base_link' differs" in rig.node.diag.status().message
 
 
 def test_malformed_heads_do_not_kill_the_node(ros, model_dir):
