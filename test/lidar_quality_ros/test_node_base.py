@@ -173,3 +173,18 @@ def test_two_nodes_of_the_same_name_are_reported(ros):
                       and "duplicate_name" in b.diag.warning_keys(), timeout=15.0)
     assert "2 nodes are named /lmd_node" in a.diag.status().message
     assert wait_until(lambda: logged(log, a, "2 nodes are named /lmd_node"), timeout=5.0)
+
+
+def test_warnings_are_throttled_per_cause(ros):
+    # one shared throttle hid a second problem raised within 5 s of the first
+    log = ros.collector(Log, "/rosout")
+    node = ros.start(LmdNode, parameters={"proposal_mode": "none"})
+    node.warn_input("cloud", "first problem: a malformed cloud")
+    node.warn_input("frame_id", "second problem: a frame_id mismatch")
+    node.warn_input("cloud", "first problem again, within the throttle period")
+    assert wait_until(lambda: logged(log, node, "second problem"), timeout=5.0)
+    assert logged(log, node, "first problem: a malformed cloud")
+    time.sleep(0.5)
+    assert not logged(log, node, "first problem again")
+    v = {kv.key: kv.value for kv in node.diag.status().values}
+    assert v["warnings.cloud"] == "2" and v["warnings.frame_id"] == "1"
