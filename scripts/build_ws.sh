@@ -4,6 +4,7 @@
 # --which-vision-msgs only prints that decision (an install prefix, or "build").
 set -eo pipefail
 cd "$(dirname "$0")/.."
+LQ_ISOLATED=1
 source scripts/env.sh
 ignore=ros2_ws/src/vision_msgs/COLCON_IGNORE
 external=""

@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import signal
+import sys
 import threading
+from pathlib import Path
 
 import rclpy
 from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
@@ -44,6 +46,27 @@ class _StoppableExecutor(_Stoppable, SingleThreadedExecutor):
     pass
 
 
+def _usage(node_factory, args) -> str | None:
+    """The ``--help`` text when the arguments before ``--ros-args`` ask for it, else None."""
+    argv = list(sys.argv if args is None else args)
+    exe = Path(argv[0]).stem if argv else "node"
+    own = argv[1:argv.index("--ros-args")] if "--ros-args" in argv else argv[1:]
+    if not {"-h", "--help"} & set(own):
+        return None
+    doc = (sys.modules[node_factory.__module__].__doc__ or "").strip()
+    text = [f"usage: {exe} [--ros-args [-p NAME:=VALUE] [--params-file FILE] [-r FROM:=TO] ...]",
+            "", doc]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        config = (Path(get_package_share_directory(node_factory.__module__.split(".")[0]))
+                  / "config" / f"{exe}.yaml")
+        if config.is_file():
+            text += ["", f"Parameters, their defaults and meaning: {config}"]
+    except Exception:  # noqa: BLE001 - the help text goes without the path
+        pass
+    return "\n".join(text)
+
+
 def run_node(node_factory, args=None, *, num_threads: int = 1) -> int:
     """Create the node, spin it until SIGINT / SIGTERM and return the exit code.
 
@@ -53,6 +76,10 @@ def run_node(node_factory, args=None, *, num_threads: int = 1) -> int:
     A node that cannot start (bad parameters, unreadable model) logs why and returns 2;
     an error that escapes the executor (not a frame: those are contained) returns 1.
     """
+    usage = _usage(node_factory, args)
+    if usage is not None:  # `lmd_node --help` prints this instead of starting the node
+        print(usage)
+        return 0
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
