@@ -21,6 +21,7 @@ help:
 	@echo "make meta-models   retrain the LMD / LMS / MIMO meta models (models/lmd, lms, mimo) and write their reports"
 	@echo "make fuzz | soak   hardening runs (malformed input; 10 minutes at 10 Hz)"
 	@echo "make setup | build | bench | clean | distclean | lock"
+	@echo "LQ_SHM_SEGMENT_MB=N make ...   Fast DDS shared-memory segment of N MiB (default 64: clouds up to 66 MB)"
 
 setup: $(SETUP_STAMP)
 $(SETUP_STAMP): requirements/lock-wheels.txt requirements/python.in scripts/setup_env.sh scripts/fix_cmake_paths.py

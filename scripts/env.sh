@@ -60,8 +60,11 @@ _lq_profile() {
   local src="$LQ_ROOT/config/fastdds_loopback_shm.xml" dir out tmp
   local -a edits
   if [ "$1" = "$_lq_default_mb" ] && [ "$2" = loopback ]; then echo "$src"; return 0; fi
-  dir="${LQ_PROFILE_DIR:-${XDG_CACHE_HOME:-${HOME:-/nonexistent}/.cache}/lidar_quality}"
-  if ! mkdir -p "$dir" 2>/dev/null || [ ! -w "$dir" ]; then
+  dir="${LQ_PROFILE_DIR:-}"
+  if [ -z "$dir" ] && { [ -n "${XDG_CACHE_HOME:-}" ] || [ -d "${HOME:-}" ]; }; then
+    dir="${XDG_CACHE_HOME:-$HOME/.cache}/lidar_quality"
+  fi
+  if [ -z "$dir" ] || ! mkdir -p "$dir" 2>/dev/null || [ ! -w "$dir" ]; then
     dir="${TMPDIR:-/tmp}/lidar_quality-$(id -u)"; mkdir -p "$dir" || return 1
   fi
   out="$dir/fastdds_${2}_shm_${1}mib.xml"
