@@ -24,3 +24,12 @@ def test_lease_excludes_other_processes():
     again = DomainLease.acquire(start=lease.domain_id - 1)
     assert again.domain_id == lease.domain_id  # released: free again
     again.release()
+
+
+def test_unopenable_lock_file_is_skipped(tmp_path, monkeypatch):
+    # e.g. a lock file of another user, or a stale link: that domain is passed over
+    import lidar_quality_ros.domain as domain
+    monkeypatch.setattr(domain, "LOCK_DIR", tmp_path)
+    (tmp_path / "5.lock").symlink_to(tmp_path / "missing_dir" / "5.lock")
+    with DomainLease.acquire(start=4) as lease:
+        assert lease.domain_id == 6
