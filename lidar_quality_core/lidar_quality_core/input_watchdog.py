@@ -11,7 +11,9 @@ matches and, once no set matched for ``timeout_s`` while messages arrive, says w
 * every input arrives but nothing matches: the *nearest stamp offset* between the
   inputs (recent stamps), to compare with the synchroniser's tolerance.
 
-No input at all is *idle* (not an error: nothing to do). Pure Python; the node calls
+No input at all is *idle* (not an error: nothing to do). A verdict needs two arrivals
+since the last matched set (on some input for *missing*, on every input for *no match*):
+one late message, or a process that was paused, is not a pattern. Pure Python; the node calls
 :meth:`check` from a timer and turns the verdict into a log line and a diagnostics level.
 """
 from __future__ import annotations
@@ -54,22 +56,26 @@ class InputWatchdog:
         self._lock = threading.Lock()
         self._last_arrival: list[float | None] = [None] * self.n
         self._stamps = [deque(maxlen=history) for _ in range(self.n)]
+        self._since_match = [0] * self.n   # arrivals per input since the last matched set
         self._last_match = start_s
 
     def arrival(self, index: int, stamp_ns: int, now_s: float) -> None:
         with self._lock:
             self._last_arrival[index] = now_s
             self._stamps[index].append(int(stamp_ns))
+            self._since_match[index] += 1
 
     def matched(self, now_s: float) -> None:
         with self._lock:
             self._last_match = now_s
+            self._since_match = [0] * self.n
 
     def check(self, now_s: float) -> Verdict:
         with self._lock:
             last = list(self._last_arrival)
             stamps = [list(d) for d in self._stamps]
             since = self._last_match
+            counts = list(self._since_match)
         recent = [t is not None and now_s - t < self.timeout_s for t in last]
         silent = now_s - since
         if silent < self.timeout_s:
@@ -78,8 +84,14 @@ class InputWatchdog:
             return Verdict(cause="idle", silent_s=silent)
         level = ERROR if silent >= self.error_s else WARN
         missing = [i for i in range(self.n) if not recent[i]]
+        # evidence, not a moment: a set completes only after every input's message is in,
+        # and a paused process sees its clock jump; two unmatched arrivals are a pattern
         if missing:
+            if max(counts) < 2:
+                return Verdict()
             return Verdict(level, "missing", silent, missing)
+        if min(counts) < 2:
+            return Verdict()
         return Verdict(level, "no_match", silent, [], nearest_offsets(stamps))
 
 

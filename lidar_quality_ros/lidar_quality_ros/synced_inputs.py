@@ -18,6 +18,7 @@ from typing import Callable, Sequence
 from lidar_quality_core.input_watchdog import InputWatchdog
 from lidar_quality_core.time_sync import StampSynchronizer, SyncedSet, stamp_to_ns
 from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.event_handler import SubscriptionEventCallbacks
 
 from .qos import SENSOR_QOS
 
@@ -115,9 +116,12 @@ class SyncedInputs:
         self.worker = OrderedWorker(self._run, processing_queue_size, self._overrun,
                                     name=f"{node.get_name()}_frames")
         self._group = ReentrantCallbackGroup()
+        self._warn = getattr(node, "warn_input", None)
         self.subscriptions = [
-            node.create_subscription(msg_type, topic, self._make_cb(i), qos,
-                                     callback_group=self._group, raw=topic in self._decoders)
+            node.create_subscription(
+                msg_type, topic, self._make_cb(i), qos, callback_group=self._group,
+                raw=topic in self._decoders,
+                event_callbacks=SubscriptionEventCallbacks(message_lost=self._make_lost_cb(i)))
             for i, (msg_type, topic) in enumerate(topics)
         ]
         if diagnostics is not None:
@@ -156,6 +160,24 @@ class SyncedInputs:
                 self._on_arrival(index, stamp_ns)
             self.inject(index, stamp_ns, msg)
         return on_message
+
+    def _make_lost_cb(self, index: int):
+        topic = self.topics[index]
+
+        def on_lost(info) -> None:
+            # the middleware lost messages before they reached us (e.g. a cloud larger than
+            # the DDS profile carries): without this they would be counted nowhere
+            n = int(info.total_count_change)
+            text = (f"{info.total_count} message(s) on {topic} lost in transport before they "
+                    "reached the node (a cloud larger than the shared-memory profile carries? "
+                    "see LQ_SHM_SEGMENT_MB in the README)")
+            if self._diag is not None:
+                self._diag.frame_dropped("message_lost", n)
+            if self._warn is not None:
+                self._warn(f"lost.{topic}", text)
+            else:
+                self._logger.warn(text, throttle_duration_sec=5.0)
+        return on_lost
 
     def inject(self, index: int, stamp_ns: int, msg) -> None:
         """Queue ``msg`` for input ``index`` at ``stamp_ns`` as if it had arrived (not

@@ -62,3 +62,17 @@ def test_nearest_offsets_and_arguments():
         InputWatchdog(2, timeout_s=5.0, error_s=1.0)
     with pytest.raises(ValueError):
         InputWatchdog(0)
+
+
+def test_one_unmatched_arrival_after_a_pause_is_not_a_verdict():
+    # a paused process: its clock jumps, one message is in, its set not yet complete
+    wd = InputWatchdog(1, timeout_s=2.0, error_s=10.0, start_s=0.0)
+    wd.arrival(0, 0, 0.0)
+    wd.matched(0.0)
+    wd.arrival(0, 100 * MS, 2.5)
+    assert wd.check(2.5).cause == "ok"
+    wd2 = InputWatchdog(2, timeout_s=2.0, error_s=10.0, start_s=0.0)
+    wd2.arrival(0, 0, 2.5)
+    assert wd2.check(2.5).cause == "ok"  # one message of one input: not yet "missing"
+    wd2.arrival(0, 100 * MS, 2.6)
+    assert wd2.check(2.6).cause == "missing"

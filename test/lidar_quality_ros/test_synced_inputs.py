@@ -143,3 +143,42 @@ def test_arrival_hook_and_inject(ros):
     assert wait_until(lambda: len(node.sets) == 1)
     assert node.arrivals == [(0, 4_000_000_007)]
     assert node.sets[0].messages[0].header.frame_id == "4.7" and node.sets[0].messages[1] is None
+
+
+def test_a_cloud_lost_in_transport_is_counted_and_said(ros):
+    # A cloud larger than the shared-memory profile carries never reaches the node; Fast
+    # DDS reports it lost when the next message arrives. The node (a real lms_node process)
+    # counts it in /diagnostics and says why, instead of losing it without a trace. The
+    # publisher is test/scripts/cloud_probe.py: a 1 MB cloud, then 72 MB (above the 64 MiB
+    # segment) while the node is stopped for a moment, then a 1 kB one.
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from diagnostic_msgs.msg import DiagnosticArray
+    from node_shell_checks import diag_values, executable
+
+    probe = Path(__file__).resolve().parents[1] / "scripts" / "cloud_probe.py"
+    diag = ros.collector(DiagnosticArray, "/diagnostics")
+    node = ros.spawn([str(executable("lms_ros", "lms_node")), "--ros-args",
+                      "-r", "__node:=lms_lost_test", "-r", "input/points:=/lq_probe/cloud",
+                      "-p", "diagnostics_period:=0.2"],
+                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert wait_until(lambda: ros.node.get_subscriptions_info_by_topic("/lq_probe/cloud"),
+                      timeout=30.0), "lms_node did not subscribe"
+    pub = ros.spawn([sys.executable, str(probe), "pub", "1,72", str(node.pid)],
+                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    assert pub.wait(timeout=120) == 0, pub.stdout.read()
+
+    def lost():
+        for m in list(diag.messages):
+            for s in m.status:
+                if (s.hardware_id == "/lms_lost_test"
+                        and int(diag_values(s).get("dropped.message_lost", 0)) >= 1):
+                    return s
+        return None
+
+    assert wait_until(lambda: lost() is not None, timeout=10.0), [
+        diag_values(s) for m in diag.messages for s in m.status][-1:]
+    status = lost()
+    assert "lost in transport" in status.message and "LQ_SHM_SEGMENT_MB" in status.message
