@@ -129,9 +129,11 @@ class QualityNode(Node):
             due = last is None or now - last >= self.warn_period_s
             if due:
                 self._warned[key] = now
-        if due:
-            log = self.get_logger().error if level == DiagnosticStatus.ERROR else self.get_logger().warn
-            log(message)
+        # one call site per severity: rclpy refuses to log one call site at two severities
+        if due and level == DiagnosticStatus.ERROR:
+            self.get_logger().error(message)
+        elif due:
+            self.get_logger().warn(message)
         self.diag.warn(key, message, level)
 
     def report_issues(self, issues: dict[str, str]) -> None:

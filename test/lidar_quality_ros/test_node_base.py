@@ -188,3 +188,8 @@ def test_warnings_are_throttled_per_cause(ros):
     assert not logged(log, node, "first problem again")
     v = {kv.key: kv.value for kv in node.diag.status().values}
     assert v["warnings.cloud"] == "2" and v["warnings.frame_id"] == "1"
+    # another cause at ERROR after WARN ones (rclpy refuses one call site at two levels)
+    node.warn_input("inputs", "third problem: an input never arrives", DiagnosticStatus.ERROR)
+    assert wait_until(lambda: any(m.level == Log.ERROR and "third problem" in m.msg
+                                  for m in list(log.messages)), timeout=5.0)
+    assert node.diag.status().level == DiagnosticStatus.ERROR
