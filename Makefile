@@ -60,16 +60,16 @@ data/perception/%/.done: | build
 meta-models: lmd-models lms-models mimo-models
 
 lmd-models: build $(META_BAGS)
-	bash scripts/with_env.sh python -m lmd_ros.train --train data/perception/meta_train --test data/perception/meta_test --out models/lmd --cache data/cache/lmd
-	bash scripts/with_env.sh python -m lmd_ros.evaluate --train data/perception/meta_train --test data/perception/meta_test --out out/lmd_eval --cache data/cache/lmd --docs-png docs/lmd_reliability.png
+	bash scripts/with_env.sh python -m lidar_quality_training.lmd.train --train data/perception/meta_train --test data/perception/meta_test --out models/lmd --cache data/cache/lmd
+	bash scripts/with_env.sh python -m lidar_quality_training.lmd.evaluate --train data/perception/meta_train --test data/perception/meta_test --out out/lmd_eval --cache data/cache/lmd --docs-png docs/lmd_reliability.png
 
 lms-models: build $(META_BAGS)
-	bash scripts/with_env.sh python -m lms_ros.train --data data/perception/meta_train --out models/lms --cache data/cache/lms
-	bash scripts/with_env.sh python -m lms_ros.evaluate --train data/perception/meta_train --test data/perception/meta_test --models models/lms --out out/lms_eval --cache data/cache/lms --docs-figure docs/lms_quality.png --model-card
+	bash scripts/with_env.sh python -m lidar_quality_training.lms.train --data data/perception/meta_train --out models/lms --cache data/cache/lms
+	bash scripts/with_env.sh python -m lidar_quality_training.lms.evaluate --train data/perception/meta_train --test data/perception/meta_test --models models/lms --out out/lms_eval --cache data/cache/lms --docs-figure docs/lms_quality.png --model-card
 
 mimo-models: build $(META_BAGS)
-	bash scripts/with_env.sh python -m mimo_ros.train --data data/perception/meta_train --out models/mimo --cache data/cache/mimo
-	bash scripts/with_env.sh python -m mimo_ros.evaluate --data data/perception/meta_test --models models/mimo --out out/mimo_eval --cache data/cache/mimo --docs docs --model-card models/mimo/MODEL_CARD.md
+	bash scripts/with_env.sh python -m lidar_quality_training.mimo.train --data data/perception/meta_train --out models/mimo --cache data/cache/mimo
+	bash scripts/with_env.sh python -m lidar_quality_training.mimo.evaluate --data data/perception/meta_test --models models/mimo --out out/mimo_eval --cache data/cache/mimo --docs docs --model-card models/mimo/MODEL_CARD.md
 
 fuzz: build
 	bash scripts/with_env.sh python scripts/fuzz_nodes.py --out out/fuzz/report.json

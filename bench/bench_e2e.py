@@ -1,7 +1,7 @@
 """End-to-end figures over DDS (issue 8): the three nodes as processes, fed 120k-point
 frames, latency from publication to reception, drops, largest sustained rate.
 
-One experiment (``lidar_quality_ros.load_test``: the installed node executables with
+One experiment (``lidar_quality_tools.load_test``: the installed node executables with
 their installed config, pre-serialized synthetic frames published raw over the loopback
 Fast DDS profile, outputs matched by stamp in the publishing process), run once by
 ``bench/run.py`` (item kind ``"figures"``):
@@ -51,7 +51,7 @@ def _say(s: str) -> None:
 def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=RATES,
                window=WINDOW, out_dir: Path = OUT, n_points: int = 120_000) -> tuple[dict, dict]:
     """Run both parts; returns (figures, report)."""
-    from lidar_quality_ros.load_test import LoadTest, max_sustained_rate, step_ok
+    from lidar_quality_tools.load_test import LoadTest, max_sustained_rate, step_ok
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -21,8 +21,6 @@ setup(
     description=open("package.xml").read().split("<description>")[1].split("</description>")[0],
     license="Apache-2.0",
     entry_points={
-        "console_scripts": ["lmd_node = lmd_ros.lmd_node:main",
-                            "lmd-train = lmd_ros.train:main",
-                            "lmd-eval = lmd_ros.evaluate:main"],
+        "console_scripts": ["lmd_node = lmd_ros.lmd_node:main"],
     },
 )

@@ -23,8 +23,6 @@ setup(
     entry_points={
         "console_scripts": [
             "lms_node = lms_ros.lms_node:main",
-            "lms-train = lms_ros.train:main",
-            "lms-eval = lms_ros.evaluate:main",
         ],
     },
 )

@@ -21,8 +21,6 @@ setup(
     description=open("package.xml").read().split("<description>")[1].split("</description>")[0],
     license="Apache-2.0",
     entry_points={
-        "console_scripts": ["mimo_node = mimo_ros.mimo_node:main",
-                            "mimo-train = mimo_ros.train:main",
-                            "mimo-eval = mimo_ros.evaluate:main"],
+        "console_scripts": ["mimo_node = mimo_ros.mimo_node:main"],
     },
 )

@@ -4,7 +4,7 @@
 Per node: start it in-process in a private ROS world (``lidar_quality_ros.testing.
 RosHarness``) with the parameters of its installed config file and every optional input
 enabled; send a valid reference frame; then ``--cases`` malformed frames from
-``lidar_quality_ros.fuzz`` over all its input topics with the sensor-data QoS, one at a
+``lidar_quality_tools.fuzz`` over all its input topics with the sensor-data QoS, one at a
 time (each settles, received and processed or dropped, before the next); then valid
 frames again. A node passes when no callback raised into the executor (the executable
 would have died), its frame worker is alive, the valid frame after the garbage is
@@ -53,7 +53,7 @@ CLASS_PARAM = "class_names"
 # ---------------------------------------------------------------------------- node I/O
 def input_specs(node, name: str):
     """InputSpecs of the node's synchronised inputs, from its subscriptions."""
-    from lidar_quality_ros.fuzz import input_spec
+    from lidar_quality_tools.fuzz import input_spec
     from reference_perception.messages import probability_field
     types = {s.topic_name: s.msg_type for s in node.subscriptions}
     probs, separate = (), False
@@ -234,7 +234,7 @@ def settle(node, counters: Counters, before: dict, n_msgs: int, heavy: bool, sta
 # ---------------------------------------------------------------------------- one node
 def fuzz_node(name: str, cases: int, seed: int, extra: dict, huge_clouds: int,
               box_floods: int | None) -> dict:
-    from lidar_quality_ros import fuzz
+    from lidar_quality_tools import fuzz
     from lidar_quality_ros.params import config_parameters
     from lidar_quality_ros.qos import output_qos
     from lidar_quality_ros.testing import RosHarness

@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """Soak test (issue 8): lmd_node, lms_node and mimo_node at once, 10 Hz, 120k-point frames.
 
-A thin CLI over ``lidar_quality_ros.load_test.LoadTest`` (node processes with their
+A thin CLI over ``lidar_quality_tools.load_test.LoadTest`` (node processes with their
 installed config, pre-serialized synthetic frames over loopback DDS in a private domain;
 see that module). After the pre-roll, frames are published at ``--rate`` for
 ``--duration`` seconds. Reported per node: frames published and received on its main
@@ -23,7 +23,7 @@ import json
 import os
 from pathlib import Path
 
-from lidar_quality_ros.load_test import NODES, LoadTest
+from lidar_quality_tools.load_test import NODES, LoadTest
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -11,7 +11,8 @@ from typing import NamedTuple
 import numpy as np
 
 __all__ = ["as_boxes", "bev_corners", "corners_3d", "points_in_boxes",
-           "count_points_in_boxes", "segment_stats", "SegmentStats"]
+           "count_points_in_boxes", "segment_stats", "SegmentStats", "as_cloud",
+           "inbox_point_stats"]
 
 # Local (x, y) signs of the BEV corners, counter-clockwise: front-left, rear-left,
 # rear-right, front-right.
@@ -365,3 +366,51 @@ def segment_stats(values, offsets, point_index) -> SegmentStats:
         out[2][ne] = mean
         out[3][ne] = np.sqrt(np.add.reduceat(dev * dev, starts) / cn)
     return SegmentStats(cnt, *out)
+
+
+def _usable_points(points, intensity):
+    """(usable point count, point mask or None when every point is usable): a point is
+    usable when x, y, z and its intensity are finite."""
+    # Any NaN / inf makes the sum non-finite; an overflowing sum of finite values only
+    # sends us to the exact check below.
+    if np.isfinite(np.sum(points)) and np.isfinite(np.sum(intensity)):
+        return len(points), None
+    ok = np.isfinite(intensity)
+    for c in range(3):
+        ok &= np.isfinite(points[:, c])
+    return int(np.count_nonzero(ok)), ok
+
+
+def _filter_csr(offsets, idx, ok):
+    """Drop the points with ``ok[idx] == False`` from a CSR membership."""
+    keep = ok[idx]
+    seg = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
+    new = np.zeros_like(offsets)
+    np.cumsum(np.bincount(seg[keep], minlength=len(offsets) - 1), out=new[1:])
+    return new, idx[keep]
+
+
+def as_cloud(points, intensity) -> tuple[np.ndarray, np.ndarray]:
+    """``(points (M, 3) float, intensity (M,))``; ``ValueError`` when the lengths differ."""
+    pts = np.asarray(points)
+    if pts.dtype.kind != "f":
+        pts = pts.astype(np.float64)
+    pts = pts.reshape(-1, 3)
+    inten = np.asarray(intensity).reshape(-1)
+    if len(inten) != len(pts):
+        raise ValueError(f"intensity has {len(inten)} entries for {len(pts)} points")
+    return pts, inten
+
+
+def inbox_point_stats(points, intensity, boxes) -> tuple[SegmentStats, int]:
+    """Per box, the usable points inside it and their intensity statistics
+    (:func:`segment_stats`: count, min, max, mean, std; 0 for an empty box), and the
+    cloud's number of usable points (x, y, z and intensity finite). The in-box point
+    quantities of LidarMetaDetect (P, Phi = P / usable, reflectance max / mean / std),
+    shared with LiDAR-MIMO's point features of merged boxes."""
+    pts, inten = as_cloud(points, intensity)
+    n_usable, mask = _usable_points(pts, inten)
+    offsets, idx = points_in_boxes(pts, boxes)
+    if mask is not None:
+        offsets, idx = _filter_csr(offsets, idx, mask)
+    return segment_stats(inten, offsets, idx), n_usable

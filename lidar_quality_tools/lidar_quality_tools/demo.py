@@ -146,7 +146,7 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
     """Steps 2-3: start the nodes, replay ``bag``, record. Returns the live figures."""
     from diagnostic_msgs.msg import DiagnosticArray
     from lidar_quality_ros.bag_io import bag_info
-    from lidar_quality_ros.load_test import NODES, DiagnosticsLog, node_command, percentile
+    from lidar_quality_tools.load_test import NODES, DiagnosticsLog, node_command, percentile
     from lidar_quality_ros.perception_bag import head_count
     from lidar_quality_ros.qos import output_qos
     from lidar_quality_ros.testing import RosHarness

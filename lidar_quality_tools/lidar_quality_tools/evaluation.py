@@ -5,14 +5,14 @@ outputs (recorded by the demo, or written by ``process_bag``: then both are one 
 joined by header stamp. Per method the targets are those of its training data:
 
 - LMD (``/lmd/output/quality``): each detection's BEV IoU with its best ground-truth box
-  (any class), true positive at IoU >= 0.5 (``lmd_ros.dataset``); baseline: the detector
+  (any class), true positive at IoU >= 0.5 (``lidar_quality_training.lmd.dataset``); baseline: the detector
   score (``original_score``).
 - LMS (``/lms/output/segments``): each segment's adjusted IoU, true segment at IoU_adj > 0
   (``lms_ros.segment_metrics.segment_targets``), computed on the segmentation recomputed
   from the input and checked against the recorded one (segment count, classes, sizes);
   baseline: the segment's mean top-class softmax probability (1 - mean V).
 - MIMO (``/mimo/output/uncertainty``): each merged box's BEV IoU with its best
-  ground-truth box of its class, true positive at >= 0.5 (``mimo_ros.dataset``); the
+  ground-truth box of its class, true positive at >= 0.5 (``lidar_quality_training.mimo.dataset``); the
   merge is recomputed from the heads and checked against the recorded ids; baseline: the
   merged score.
 
@@ -122,7 +122,7 @@ def lms_rows(points_msg, segmentation_msg, points_gt_msg, segments_msg, settings
     ``separate``: the node read the points and the probabilities on two topics (the ring
     field of the points then gives the image rows, as the shipped models were trained).
     """
-    from lms_ros.dataset import _gt_labels, frame_rows
+    from lidar_quality_training.lms.dataset import _gt_labels, frame_rows
     from lms_ros.pipeline import decode
 
     inp = (decode(points_msg, settings, probabilities_msg=segmentation_msg) if separate

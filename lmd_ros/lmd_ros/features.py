@@ -87,7 +87,8 @@ from typing import Sequence
 
 import numpy as np
 
-from lidar_quality_core.box_geometry import as_boxes, points_in_boxes, segment_stats
+from lidar_quality_core.box_geometry import (as_boxes, as_cloud, inbox_point_stats,
+                                             segment_stats)
 from lidar_quality_core.iou import iou_bev_pairs, sparse_iou
 
 __all__ = ["MODES", "OWN_QUANTITIES", "SET_QUANTITIES", "STATS", "DEFAULT_IOU_THRESHOLD",
@@ -214,27 +215,6 @@ def _box_ok(b: np.ndarray, scores: np.ndarray) -> np.ndarray:
                 & (np.min(b[:, 3:6], axis=1, initial=np.inf) > 0.0))
 
 
-def _valid_points(points, intensity):
-    """(usable |X|, point mask or None when every point is usable)."""
-    # Any NaN / inf makes the sum non-finite; an overflowing sum of finite values only
-    # sends us to the exact check below.
-    if np.isfinite(np.sum(points)) and np.isfinite(np.sum(intensity)):
-        return len(points), None
-    ok = np.isfinite(intensity)
-    for c in range(3):
-        ok &= np.isfinite(points[:, c])
-    return int(np.count_nonzero(ok)), ok
-
-
-def _filter_csr(offsets, idx, ok):
-    """Drop the points with ``ok[idx] == False`` from a CSR membership."""
-    keep = ok[idx]
-    seg = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
-    new = np.zeros_like(offsets)
-    np.cumsum(np.bincount(seg[keep], minlength=len(offsets) - 1), out=new[1:])
-    return new, idx[keep]
-
-
 def _quantities(b, scores, st, n_points: int) -> np.ndarray:
     """(n, 16) SET_QUANTITIES of boxes ``b`` with in-box point statistics ``st``."""
     q = np.empty((len(b), len(SET_QUANTITIES)))
@@ -322,13 +302,7 @@ def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, propo
         if extra.ndim != 2 or len(extra) != n:
             raise ValueError(f"class_scores must have shape ({n}, C), got {extra.shape}")
         extra = np.nan_to_num(extra, nan=0.0)
-    pts = np.asarray(points_xyz)
-    if pts.dtype.kind != "f":
-        pts = pts.astype(np.float64)
-    pts = pts.reshape(-1, 3)
-    inten = np.asarray(intensity).reshape(-1)
-    if len(inten) != len(pts):
-        raise ValueError(f"intensity has {len(inten)} entries for {len(pts)} points")
+    pts, inten = as_cloud(points_xyz, intensity)
     n_feat = len(feature_names(mode, None if extra is None else extra.shape[1]))
     if n == 0:
         return np.zeros((0, n_feat))
@@ -348,11 +322,7 @@ def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, propo
         allb = b
 
     # --- in-box points and per-box quantities -------------------------------------------
-    n_pts, pmask = _valid_points(pts, inten)
-    offsets, idx = points_in_boxes(pts, allb)
-    if pmask is not None:
-        offsets, idx = _filter_csr(offsets, idx, pmask)
-    st = segment_stats(inten, offsets, idx)
+    st, n_pts = inbox_point_stats(pts, inten, allb)
     allsc = sc if mode == "none" else np.concatenate([sc, ps[need]])
     q = _quantities(allb, allsc, st, n_pts)
 

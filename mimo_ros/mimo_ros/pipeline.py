@@ -45,6 +45,7 @@ from typing import Sequence
 
 import numpy as np
 
+from lidar_quality_core.box_geometry import as_boxes, inbox_point_stats
 from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
                                       detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
@@ -64,7 +65,7 @@ STAT_FEATURES = (("cluster_size", "head_fraction", "shannon_entropy", "aleatoric
                  + tuple(f"epistemic_var_{p}" for p in BOX_PARAMS)
                  + tuple(f"aleatoric_var_{p}" for p in BOX_PARAMS)
                  + ("score", "class", "distance"))
-#: LMD own-box point features of the merged box (``lmd_ros.features``, mode "none").
+#: LMD own-box point features of the merged box (the same quantities as ``lmd_ros.features``).
 POINT_FEATURES = ("points", "points_frac", "refl_max", "refl_mean", "refl_std")
 _MODEL_PREFIX = {False: "mimo", True: "mimo_points"}
 
@@ -260,9 +261,9 @@ def _decode_cloud(cloud):
 
 
 def _point_features(cloud, merge: MergeResult) -> np.ndarray:
-    from lmd_ros.features import OWN_QUANTITIES, compute_features
-
-    cols = [OWN_QUANTITIES.index(n) for n in POINT_FEATURES]
+    """LMD's own-box point quantities of the merged boxes (``POINT_FEATURES``:
+    ``box_geometry.inbox_point_stats``); NaN for a box that is not finite, of size <= 0
+    or with a non-finite score, and the reflectance columns NaN without intensity."""
     out = np.full((len(merge), len(POINT_FEATURES)), np.nan)
     if cloud is None or not len(merge):
         return out
@@ -270,8 +271,15 @@ def _point_features(cloud, merge: MergeResult) -> np.ndarray:
     no_intensity = inten is None
     if no_intensity:  # counts stay valid; reflectance statistics unknown (NaN below)
         inten = np.zeros(len(xyz), np.float32)
-    f = compute_features(xyz, inten, merge.boxes, merge.scores, merge.labels - 1, mode="none")
-    out[:] = f[:, cols]
+    b = as_boxes(merge.boxes)
+    st, n_usable = inbox_point_stats(xyz, inten, b)
+    out[:, 0] = st.count
+    out[:, 1] = st.count / n_usable if n_usable else 0.0
+    out[:, 2], out[:, 3], out[:, 4] = st.max, st.mean, st.std
+    with np.errstate(invalid="ignore"):
+        ok = (np.isfinite(b).all(axis=1) & np.isfinite(merge.scores)
+              & (np.min(b[:, 3:6], axis=1, initial=np.inf) > 0.0))
+    out[~ok] = np.nan
     if no_intensity:
         out[:, 2:] = np.nan
     return out

@@ -11,7 +11,7 @@ import sys
 
 import pytest
 from lidar_quality_ros.bag_io import BagWriter, bag_info, read_bag
-from lidar_quality_ros.load_test import NODES
+from lidar_quality_tools.load_test import NODES
 from lidar_quality_tools.demo import EXIT_DROPPED, EXIT_FAILED, EXIT_OK, verdict
 from perception_bags import simulated_perception_bags
 from rclpy.serialization import deserialize_message, serialize_message

@@ -186,7 +186,7 @@ def test_real_frames_round_trip(real_kitti, tmp_path):
     """Real labels -> lidar boxes with the frame's calib -> our result writer -> our reader:
     the same boxes, to 1 cm and 0.01 rad; the projected 2D boxes are the labelled ones."""
     from lidar_quality_core.box_geometry import count_points_in_boxes
-    from lmd_ros import dataset as D
+    from lidar_quality_training.lmd import dataset as D
 
     fids = sorted(p.stem for p in (real_kitti / "label_2").glob("*.txt"))
     assert fids

@@ -115,7 +115,7 @@ def test_kitti_results_on_real_frames_read_back_to_the_detector_boxes(tmp_path):
     """``reference-perception kitti`` on real KITTI scans: lmd_ros reads the result files
     back, with the frame's calibration, to the detector's own lidar boxes. With the
     simulator's calibration in the writer (the old defect) boxes moved by up to 0.33 m."""
-    from lmd_ros import dataset as D
+    from lidar_quality_training.lmd import dataset as D
 
     root = realdata_kitti_dir()
     base = root / "training"
@@ -143,7 +143,7 @@ def test_kitti_dataset_without_calibration(sim_dir, tmp_path, capsys):
     """No calib file: the simulator's calibration, said and recorded; lmd_ros reads the
     results with the recorded one and refuses labels it cannot place."""
     from lidar_sim import kitti
-    from lmd_ros import dataset as D
+    from lidar_quality_training.lmd import dataset as D
 
     root = tmp_path / "kitti"
     shutil.copytree(sim_dir / "kitti", root)

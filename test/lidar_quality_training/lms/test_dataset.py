@@ -8,7 +8,7 @@ from lidar_quality_core import meta_model
 from lidar_quality_core.pointcloud import cloud_to_structured
 from lidar_quality_ros.perception_bag import perception_frames
 from lms_data import COLUMNS, perception_bags, semantickitti_dir
-from lms_ros.dataset import (SegmentDataset, build_dataset, discover_sources, load_frame,
+from lidar_quality_training.lms.dataset import (SegmentDataset, build_dataset, discover_sources, load_frame,
                              subsequence_groups)
 from lms_ros.pipeline import LmsSettings
 from lms_ros.segment_metrics import compute_segments, segment_targets

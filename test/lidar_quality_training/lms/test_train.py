@@ -8,9 +8,9 @@ from lidar_quality_core.meta_model import MetaModels
 from lidar_quality_core.model_store import read_manifest
 from lidar_quality_ros.perception_bag import perception_frames
 from lms_data import COLUMNS, perception_bags
-from lms_ros.dataset import build_dataset
+from lidar_quality_training.lms.dataset import build_dataset
 from lms_ros.pipeline import LmsProcessor, LmsSettings
-from lms_ros.train import cross_validate_pair, feature_set, main
+from lidar_quality_training.lms.train import cross_validate_pair, feature_set, main
 
 SETTINGS = LmsSettings(width=COLUMNS)
 

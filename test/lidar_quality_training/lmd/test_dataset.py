@@ -1,4 +1,4 @@
-"""lmd_ros.dataset: rows from perception bags and KITTI directories equal the pipeline's
+"""lidar_quality_training.lmd.dataset: rows from perception bags and KITTI directories equal the pipeline's
 features of the same messages, targets equal an independent IoU computation, the cache is
 keyed by inputs and settings, KITTI boxes survive the file round trip."""
 import os
@@ -10,7 +10,7 @@ from lidar_quality_core.iou import iou_bev
 from lidar_sim import kitti
 from lmd_bags import write_bag, write_split
 from lmd_frames import CLASS_NAMES
-from lmd_ros import dataset as D
+from lidar_quality_training.lmd import dataset as D
 from lmd_ros.pipeline import frame_features
 
 MODES = ("exact", "threshold", "none")

@@ -39,16 +39,13 @@ from typing import Sequence
 
 import numpy as np
 
-from .pipeline import MimoSettings
+from mimo_ros.pipeline import MimoSettings
 
 __all__ = ["TP_IOU", "EVAL_MIN_POINTS", "EVAL_MAX_RANGE", "MimoDataset", "read_bag",
            "load_bags", "resolve_bags"]
 
 TP_IOU = 0.5
 CACHE_VERSION = 1
-_CODE_FILES = ("dataset.py", "pipeline.py", "merging.py", "uncertainty.py")
-
-
 def _eval_defaults() -> tuple[int, float]:
     from reference_perception.clustering import ClusterConfig
     from reference_perception.detector import EVAL_MIN_POINTS as min_points
@@ -352,7 +349,7 @@ def read_bag(bag, *, settings: MimoSettings | None = None, progress: bool = True
     from lidar_quality_core.progress import Progress
     from lidar_quality_ros.perception_bag import bag_group
 
-    from .pipeline import frame_features, head_detections
+    from mimo_ros.pipeline import frame_features, head_detections
 
     bag = Path(bag)
     k = head_count(bag)
@@ -393,9 +390,11 @@ def resolve_bags(paths: Sequence) -> list[Path]:
 
 
 def _code_hash() -> str:
+    from mimo_ros import merging, pipeline, uncertainty
+
     h = hashlib.sha256()
-    for name in _CODE_FILES:
-        h.update((Path(__file__).parent / name).read_bytes())
+    for path in (__file__, pipeline.__file__, merging.__file__, uncertainty.__file__):
+        h.update(Path(path).read_bytes())
     return h.hexdigest()
 
 

@@ -1,4 +1,4 @@
-"""mimo_ros.evaluate: partitions and targets on a hand-made frame, the meta distribution,
+"""lidar_quality_training.mimo.evaluate: partitions and targets on a hand-made frame, the meta distribution,
 and mimo-train + mimo-eval end to end on tiny perception bags."""
 import json
 import math
@@ -6,10 +6,10 @@ import math
 import numpy as np
 import pytest
 from lidar_quality_core.detection_eval import Partition
-from mimo_ros.dataset import MimoDataset
-from mimo_ros.evaluate import (Detections, annotate, main, meta_distribution, regression_gt,
+from lidar_quality_training.mimo.dataset import MimoDataset
+from lidar_quality_training.mimo.evaluate import (Detections, annotate, main, meta_distribution, regression_gt,
                                split_groups)
-from mimo_ros.train import CARD_BEGIN, main as train_main
+from lidar_quality_training.mimo.train import CARD_BEGIN, main as train_main
 from mimo_data import perception_bags
 
 NAMES = ("car", "truck", "pedestrian", "cyclist")

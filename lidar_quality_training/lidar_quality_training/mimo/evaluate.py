@@ -66,8 +66,8 @@ from lidar_quality_core.jsonable import jsonable
 from lidar_quality_core.detection_eval import (KITTI_IOU_THRESHOLDS, Partition, fp_partition,
                                                match_frame, summarize)
 
-from . import scoring_rules as sr
-from .calibration import Recalibration
+from mimo_ros import scoring_rules as sr
+from mimo_ros.calibration import Recalibration
 from .dataset import TP_IOU, MimoDataset, load_bags
 from .train import CARD_BEGIN, CARD_END, PREFIXES, add_data_arguments
 
@@ -339,7 +339,7 @@ def qualitative_png(path, ds: MimoDataset, frame: int, models: dict, *, max_rang
     from lidar_quality_ros.perception_bag import head_count, perception_frames
 
     from .dataset import settings_for
-    from .pipeline import STAT_FEATURES, frame_features
+    from mimo_ros.pipeline import STAT_FEATURES, frame_features
 
     bag = ds.frame_source[frame]
     stamp = int(ds.frame_stamp[frame])
@@ -580,7 +580,7 @@ def run(data, models_dir, out, *, cache_dir=None, docs=None, model_card=None,
         es_samples: int = 1000, seed: int = 0, heading_aware: bool = False, quiet: bool = False,
         command: str = "") -> dict:
     t0 = time.monotonic()
-    from .pipeline import MimoSettings
+    from mimo_ros.pipeline import MimoSettings
 
     ds = load_bags(data, cache_dir=cache_dir, progress=not quiet)
     models = {}

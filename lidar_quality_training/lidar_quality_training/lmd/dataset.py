@@ -262,7 +262,7 @@ class _Builder:
 
 def settings_for(mode: str, **overrides):
     """``LmdSettings`` of ``mode`` with ``overrides`` (validated)."""
-    from .pipeline import LmdSettings
+    from lmd_ros.pipeline import LmdSettings
 
     s = LmdSettings(proposal_mode=mode, **overrides)
     s.validate()
@@ -287,13 +287,12 @@ def _modes_of(settings_list) -> list[str]:
 
 
 # ---------------------------------------------------------------------------- caching
-_CODE_FILES = ("dataset.py", "features.py", "pipeline.py")
-
-
 def _code_hash() -> str:
+    from lmd_ros import features, pipeline
+
     h = hashlib.sha256()
-    for name in _CODE_FILES:
-        h.update((Path(__file__).parent / name).read_bytes())
+    for path in (__file__, features.__file__, pipeline.__file__):
+        h.update(Path(path).read_bytes())
     return h.hexdigest()
 
 
@@ -344,7 +343,7 @@ def _read_bag(bag: Path, settings_list, topics, progress: bool) -> dict:
     from lidar_quality_ros.bag_io import bag_info
     from lidar_quality_ros.perception_bag import DEFAULT_TOPICS, perception_frames
 
-    from .pipeline import frame_features
+    from lmd_ros.pipeline import frame_features
 
     names = {**DEFAULT_TOPICS, **(topics or {})}
     modes = _modes_of(settings_list)
@@ -505,7 +504,7 @@ def _kitti_messages(fid: str, k: int, root: Path, split: str, results: Path, pro
 
 
 def _read_kitti(root, split, results, proposals, ids, settings_list, group_digits, progress):
-    from .pipeline import frame_features
+    from lmd_ros.pipeline import frame_features
 
     builders = {s.proposal_mode: _Builder(s) for s in settings_list}
     bar = Progress(f"KITTI {Path(root).name}/{split}:", len(ids), progress)

@@ -9,8 +9,8 @@ from lidar_quality_core import metrics as M
 from lidar_quality_core.meta_model import MetaModels
 from lidar_quality_core.model_store import read_manifest
 from lmd_bags import write_split
-from lmd_ros import dataset as D
-from lmd_ros import train
+from lidar_quality_training.lmd import dataset as D
+from lidar_quality_training.lmd import train
 from lmd_ros.pipeline import LmdSettings, default_model_paths
 
 

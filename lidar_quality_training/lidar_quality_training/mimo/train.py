@@ -129,7 +129,7 @@ def model_card(summary: dict, command: str = "") -> str:
     """``MODEL_CARD.md`` of the trained pairs (the held-out section is mimo-eval's)."""
     from lidar_quality_core.report_plots import markdown_table
 
-    from .pipeline import POINT_FEATURES, STAT_FEATURES
+    from mimo_ros.pipeline import POINT_FEATURES, STAT_FEATURES
 
     d = summary["data"]
     base = summary["baseline_merged_score"]

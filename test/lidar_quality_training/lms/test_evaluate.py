@@ -6,8 +6,8 @@ import json
 import numpy as np
 import pytest
 from lms_data import COLUMNS, perception_bags, semantickitti_dir
-from lms_ros import evaluate, train
-from lms_ros.dataset import build_dataset
+from lidar_quality_training.lms import evaluate, train
+from lidar_quality_training.lms.dataset import build_dataset
 from lms_ros.pipeline import LmsSettings
 
 SETTINGS = LmsSettings(width=COLUMNS)

@@ -7,9 +7,9 @@ import pytest
 from lidar_quality_core import metrics
 from lidar_quality_core.meta_model import MetaModels
 from lidar_quality_core.model_store import ModelStoreError
-from mimo_ros.dataset import load_bags
+from lidar_quality_training.mimo.dataset import load_bags
 from mimo_ros.pipeline import MimoSettings, default_model_paths
-from mimo_ros.train import CARD_BEGIN, CARD_END, main
+from lidar_quality_training.mimo.train import CARD_BEGIN, CARD_END, main
 from mimo_data import perception_bags
 
 

@@ -1,4 +1,4 @@
-"""lmd_ros.annotation_review: FP ranking and precision@k on a hand-built case with known
+"""lidar_quality_training.lmd.annotation_review: FP ranking and precision@k on a hand-built case with known
 answers, seeded error injection, exports, thumbnails, cloud loading from a bag."""
 import csv
 import json
@@ -8,8 +8,8 @@ import pytest
 from lidar_quality_core.iou import iou_bev
 from lidar_sim.annotation_errors import AnnotationErrorConfig, apply_records
 from lmd_bags import write_bag
-from lmd_ros import annotation_review as AR
-from lmd_ros.dataset import LmdDataset
+from lidar_quality_training.lmd import annotation_review as AR
+from lidar_quality_training.lmd.dataset import LmdDataset
 
 CAR = [4.5, 1.8, 1.5]
 
@@ -170,11 +170,11 @@ def test_load_points_from_bag(tmp_path):
 
 
 def test_cli_with_models_and_injected_errors(tmp_path, monkeypatch):
-    """``python -m lmd_ros.annotation_review`` on a tiny bag with real (small) models: the
+    """``python -m lidar_quality_training.lmd.annotation_review`` on a tiny bag with real (small) models: the
     summary's precision@k is the one of ``review`` on the models' own predictions."""
     from lidar_quality_core.meta_model import MetaModels
     from lmd_frames import train_models
-    from lmd_ros.dataset import load_bags, settings_for
+    from lidar_quality_training.lmd.dataset import load_bags, settings_for
 
     settings = settings_for("threshold")
     train_models(tmp_path / "models", settings, n_frames=3)

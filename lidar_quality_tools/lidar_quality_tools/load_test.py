@@ -7,7 +7,7 @@ with their installed ``config/<node>.yaml`` as separate processes, each in its o
 namespace (``/lmd``, ``/lms``, ``/mimo``), in a private ROS domain leased by
 :class:`~lidar_quality_ros.testing.RosHarness` (DDS on loopback: the environment of
 ``scripts/env.sh``). It reads each node's input topics from the ROS graph, builds valid
-frames for them (``lidar_quality_ros.fuzz.FrameTemplate``: synthetic 64-ring scans of
+frames for them (``lidar_quality_tools.fuzz.FrameTemplate``: synthetic 64-ring scans of
 ``n_points`` points with 50 detections, 500 proposals, head boxes and variances, class
 probabilities), serializes them once, and pre-rolls until every node has answered.
 
@@ -292,7 +292,7 @@ class LoadTest:
     def _wait_for_inputs(self, node: _Node, deadline: float) -> list:
         """InputSpecs of the node's subscriptions, read from the ROS graph once they stop
         changing (all of them, not the first only); detections before variances."""
-        from lidar_quality_ros.fuzz import VARIANCES, input_spec
+        from lidar_quality_tools.fuzz import VARIANCES, input_spec
         from reference_perception.messages import probability_field
         name, params = node.name, node.params
         probs = (tuple(probability_field(c) for c in params["class_names"])
@@ -319,7 +319,7 @@ class LoadTest:
             time.sleep(0.1)
 
     def _build_frames(self) -> None:
-        from lidar_quality_ros import fuzz
+        from lidar_quality_tools import fuzz
         self.say(f"load test: building {self.n_frames} frame(s) of {self.n_points} points "
                  f"per node")
         for node in self.nodes.values():

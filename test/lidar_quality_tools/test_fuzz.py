@@ -1,4 +1,4 @@
-"""lidar_quality_ros.fuzz: every category makes what it says, companions stay valid, the
+"""lidar_quality_tools.fuzz: every category makes what it says, companions stay valid, the
 stream is seeded; plus the short in-suite runs of scripts/fuzz_nodes.py (a few hundred
 malformed messages per node) and scripts/soak.py (15 s of the three nodes)."""
 import json
@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 from lidar_quality_core.boxes import detections_to_arrays
 from lidar_quality_core.pointcloud import CloudFormatError, cloud_to_structured
-from lidar_quality_ros import fuzz
-from lidar_quality_ros.fuzz import DETECTIONS, POINTS, VARIANCES, FrameTemplate, Fuzzer, InputSpec
+from lidar_quality_tools import fuzz
+from lidar_quality_tools.fuzz import DETECTIONS, POINTS, VARIANCES, FrameTemplate, Fuzzer, InputSpec
 
 ROOT = Path(__file__).resolve().parents[2]
 PROBS = ("unlabeled", "road", "building", "car", "traffic_sign")

@@ -7,8 +7,8 @@ import pytest
 from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as M
 from lmd_bags import write_split
-from lmd_ros import dataset as D
-from lmd_ros import evaluate as E
+from lidar_quality_training.lmd import dataset as D
+from lidar_quality_training.lmd import evaluate as E
 from sklearn.metrics import roc_auc_score
 
 

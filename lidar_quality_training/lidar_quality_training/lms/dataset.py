@@ -231,7 +231,7 @@ class SegmentDataset:
 
 
 def _settings(settings):
-    from .pipeline import LmsSettings
+    from lms_ros.pipeline import LmsSettings
 
     s = LmsSettings() if settings is None else settings
     s.validate()
@@ -249,7 +249,7 @@ def source_frames(source: Source, settings=None, *, ring_from: str = "points",
     """``(frame index, LmsInput, ground-truth class per point)`` of each frame of
     ``source`` (only ``frames`` if given), decoded by the node's
     :func:`lms_ros.pipeline.decode`."""
-    from .pipeline import decode
+    from lms_ros.pipeline import decode
 
     settings = _settings(settings)
     if ring_from not in RING_FROM:
@@ -300,8 +300,8 @@ def frame_rows(inp, gt_labels, settings=None, *, ignore_label: int | None = 0):
     """``(SegmentResult, iou, iou_adj, keep)`` of one decoded frame: the node's metrics
     (:func:`lms_ros.pipeline.frame_metrics`) and the targets of its kept segments; ``keep``
     marks the rows with a defined IoU."""
-    from .pipeline import frame_metrics
-    from .segment_metrics import segment_targets
+    from lms_ros.pipeline import frame_metrics
+    from lms_ros.segment_metrics import segment_targets
 
     settings = _settings(settings)
     res = frame_metrics(inp, settings)
@@ -360,7 +360,7 @@ def code_version() -> str:
     to the decoding, projection, fill or metrics invalidates the cache."""
     import lidar_quality_core
 
-    from . import pipeline, segment_metrics
+    from lms_ros import pipeline, segment_metrics
 
     core = Path(lidar_quality_core.__file__).parent
     h = hashlib.sha256()

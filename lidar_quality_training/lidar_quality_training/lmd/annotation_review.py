@@ -25,7 +25,7 @@ and the label wrong (missing, misplaced or mis-sized box).
   The random baseline is reported as its expectation (the hit rate among all FPs) and as one
   seeded draw.
 
-``python -m lmd_ros.annotation_review`` runs the review with the shipped models
+``python -m lidar_quality_training.lmd.annotation_review`` runs the review with the shipped models
 (``models/lmd``) on bags or a KITTI directory (``--inject-errors`` for the simulated case).
 """
 from __future__ import annotations
@@ -353,9 +353,9 @@ def main(argv=None) -> int:
     from lidar_quality_core.meta_model import MetaModels
 
     from .dataset import add_source_args, load_from_args, settings_from_args
-    from .pipeline import MODES, default_model_paths
+    from lmd_ros.pipeline import MODES, default_model_paths
 
-    ap = argparse.ArgumentParser(prog="python -m lmd_ros.annotation_review",
+    ap = argparse.ArgumentParser(prog="python -m lidar_quality_training.lmd.annotation_review",
                                  description=__doc__.split("\n\n")[0])
     add_source_args(ap, train=False)
     ap.add_argument("--mode", choices=MODES, default="threshold")

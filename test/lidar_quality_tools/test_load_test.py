@@ -1,4 +1,4 @@
-"""lidar_quality_ros.load_test: memory growth, output matching by stamp, the rate ladder;
+"""lidar_quality_tools.load_test: memory growth, output matching by stamp, the rate ladder;
 plus a short run of bench/bench_e2e.py's experiment with mimo_node alone (process, frames
 over DDS, figures present; no timing asserted: the machine may be loaded)."""
 import importlib.util
@@ -8,8 +8,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from lidar_quality_ros import fuzz, load_test
-from lidar_quality_ros.fuzz import DETECTIONS, FrameTemplate, InputSpec
+from lidar_quality_tools import fuzz, load_test
+from lidar_quality_tools.fuzz import DETECTIONS, FrameTemplate, InputSpec
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -9,7 +9,7 @@ Writes into ``--out``: ``report.md``, ``summary.json`` and the figures.
   sub-sequences): ACC, AUROC, AUPRC (false positives, IoU_adj = 0, as the positive class,
   as in the paper) and R^2 of IoU_adj, mean and standard deviation over the folds, on the
   training and the validation folds, for LMS (every metric), "LMS w/o features" (without
-  the point-cloud feature measures, :data:`lms_ros.train.FEATURE_MEASURE_PATTERN`) and
+  the point-cloud feature measures, :data:`lidar_quality_training.lms.train.FEATURE_MEASURE_PATTERN`) and
   "Entropy" (``mean_E`` alone), all with the same estimator (``--kind``, XGBoost), plus
   the naive baseline ACC (always the majority class).
 * **Table II** (greedy forward selection, :func:`meta_model.greedy_selection`): from the
@@ -172,7 +172,7 @@ def figure1(path, source, index: int, models_dir, settings, *, ignore_label=0,
     and the points in bird's eye view by true and predicted IoU_adj."""
     from matplotlib.colors import ListedColormap
 
-    from .segment_metrics import to_points
+    from lms_ros.segment_metrics import to_points
 
     inp, gt, res, iou, iou_adj = load_frame(source, index, settings, ignore_label=ignore_label,
                                             ring_from=ring_from)
@@ -361,7 +361,7 @@ def write_report(out: Path, res: dict) -> Path:
         g = res["greedy"]
         g0 = g["classification"]
         L += ["", "## Table II: greedy metric selection", "",
-              f"Search: `{g0['kind']}` models (see the module doc of `lms_ros.evaluate` for "
+              f"Search: `{g0['kind']}` models (see the module doc of `lidar_quality_training.lms.evaluate` for "
               f"why) on {g0['search_rows']} random training segments, {g0['search_folds']} "
               "grouped folds; criterion validation AUROC (classification) and R² "
               f"(regression); 'all' = every metric. Re-score: `{g0['rescore_kind']}` on all "

@@ -2,7 +2,7 @@
 
     lms-train --data data/perception/meta_train --out models/lms
 
-Builds the segment dataset (:mod:`lms_ros.dataset`: the node's own decoding and metrics,
+Builds the segment dataset (:mod:`lidar_quality_training.lms.dataset`: the node's own decoding and metrics,
 cached as .npz), fits the meta classifier (target IoU_adj > 0: the segment is a true
 positive; its probability is the node's ``confidence``) and the meta regressor (target
 IoU_adj: ``predicted_iou``) on all metrics of :meth:`LmsSettings.metric_names`, and saves
@@ -315,7 +315,7 @@ def settings_from_args(a):
     command line (``--min-points``, ``--channels``, ``--width``, ``--fov-up/-down``)."""
     import dataclasses
 
-    from .pipeline import LmsSettings
+    from lms_ros.pipeline import LmsSettings
 
     given = {"min_segment_points": a.min_points, "channels": a.channels, "width": a.width,
              "fov_up_deg": a.fov_up, "fov_down_deg": a.fov_down}

@@ -1,0 +1,1 @@
+"""Training and evaluation of the meta models (offline; the nodes never import this)."""

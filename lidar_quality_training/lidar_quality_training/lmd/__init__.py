@@ -1,0 +1,1 @@
+"""LidarMetaDetect (LMD) meta models: dataset builder, training and evaluation command lines."""

@@ -1,0 +1,1 @@
+"""LMS meta models: dataset builder, training and evaluation command lines."""

@@ -1,0 +1,1 @@
+"""MIMO meta models: dataset builder, training and evaluation command lines."""
