@@ -24,15 +24,15 @@ from pathlib import Path
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_lms_metrics import bench_frame  # noqa: E402
-
-from lidar_quality_core import meta_model  # noqa: E402
-from lidar_quality_core.pointcloud import create_cloud  # noqa: E402
-from lms_ros.pipeline import (LmsProcessor, LmsSettings, decode, default_model_paths,  # noqa: E402
+from lidar_quality_core import meta_model
+from lidar_quality_core.pointcloud import create_cloud
+from lms_ros.pipeline import (LmsProcessor, LmsSettings, decode, default_model_paths,
                               frame_metrics, probability_field)
-from lms_ros.segment_metrics import segment_targets  # noqa: E402
-from std_msgs.msg import Header  # noqa: E402
+from lms_ros.segment_metrics import segment_targets
+from std_msgs.msg import Header
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from bench_lms_metrics import bench_frame  # noqa: E402 - a sibling script: bench/ must be on sys.path first
 
 SETTINGS = LmsSettings(ring_zero_top=True)   # lidar_sim: ring 0 = top beam
 

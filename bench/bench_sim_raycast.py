@@ -90,7 +90,8 @@ def street_scene(seed: int = 0, ground_z: float = -1.73) -> Primitives:
         crefl.append(0.5)
         box(x, y, ground_z + 2.6, 0.05, 0.8, 0.8, 0.0, SIGN, inst, 0.9)
         inst += 1
-    i32 = lambda v: np.asarray(v, np.int32)  # noqa: E731
+    def i32(v):
+        return np.asarray(v, np.int32)
     return Primitives(
         boxes=np.asarray(boxes), box_class=i32(bcls), box_instance=i32(binst),
         box_reflectivity=np.asarray(brefl),

@@ -282,7 +282,8 @@ def save_model(
             manifest["classes"] = _multiclass_labels(model, path)
         elif not hasattr(model, "predict"):
             raise ModelStoreError(f"{path.name}: regression model has no predict()")
-        writer = lambda tmp: joblib.dump(model, tmp, compress=compress)  # noqa: E731
+        def writer(tmp):
+            return joblib.dump(model, tmp, compress=compress)
         suffix = ""
     else:
         ext = _NATIVE_EXT[format]

@@ -197,7 +197,7 @@ class SyncedInputs:
         # A bug or an unforeseen input must cost one frame, never the node.
         try:
             self._callback(matched)
-        except Exception as exc:  # noqa: BLE001
+        except Exception as exc:  # noqa: BLE001 - a bug or bad input costs this frame only
             self._logger.error(f"frame at stamp {matched.stamp_ns} ns dropped: "
                                f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}",
                                throttle_duration_sec=5.0)

@@ -84,7 +84,7 @@ class RosHarness:
                 self.executor.spin()
             except ExternalShutdownException:
                 break
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - recorded: close() fails the test
                 if self.context.ok() and not self._closing:
                     self.errors.append(traceback.format_exc())
 

@@ -231,7 +231,8 @@ def process_semantickitti(root: Path, out: Path, perception: Perception, *, sequ
         seqs = [p for p in seqs if int(p.name) in set(sequences)]
     n = 0
     for seq in seqs:
-        pred, prob = out / "sequences" / seq.name / "predictions", out / "sequences" / seq.name / "probabilities"
+        pred = out / "sequences" / seq.name / "predictions"
+        prob = out / "sequences" / seq.name / "probabilities"
         pred.mkdir(parents=True, exist_ok=True)
         prob.mkdir(parents=True, exist_ok=True)
         for path in sorted((seq / "velodyne").glob("*.bin")):

@@ -563,7 +563,8 @@ def main(argv=None) -> int:
     ev.add_argument("--sequences", type=int, nargs="*", default=None)
     ev.add_argument("--max-frames", type=int, default=None)
     args = ap.parse_args(argv)
-    log = lambda *a: print(*a, flush=True)  # noqa: E731
+    def log(*a):
+        print(*a, flush=True)
     if args.cmd == "train":
         train_detector(args.out, split=args.split, sequences=args.sequences, cache=args.cache,
                        log=log)

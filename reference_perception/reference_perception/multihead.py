@@ -377,7 +377,8 @@ def main(argv=None) -> int:
     ev.add_argument("--sequences", type=int, nargs="*", default=None)
     ev.add_argument("--max-frames", type=int, default=None)
     args = ap.parse_args(argv)
-    log = lambda *a: print(*a, flush=True)  # noqa: E731
+    def log(*a):
+        print(*a, flush=True)
     if args.cmd == "train":
         train_multihead(args.out, num_heads=args.heads, split=args.split,
                         sequences=args.sequences, cache=args.cache, seed=args.seed, log=log)

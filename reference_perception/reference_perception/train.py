@@ -22,13 +22,15 @@ PARTS = ("segmenter", "detector", "multihead")
 def main(argv=None) -> int:
     from lidar_quality_core.model_store import models_dir
 
-    ap = argparse.ArgumentParser(prog="python -m reference_perception.train", description=__doc__.split("\n\n")[0])
+    ap = argparse.ArgumentParser(prog="python -m reference_perception.train",
+                                 description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", type=Path, default=models_dir() / "reference")
     ap.add_argument("--only", nargs="*", choices=PARTS, default=list(PARTS))
     ap.add_argument("--heads", type=int, default=2)
     a = ap.parse_args(argv)
     a.out.mkdir(parents=True, exist_ok=True)
-    log = lambda *x: print(*x, flush=True)  # noqa: E731
+    def log(*x):
+        print(*x, flush=True)
     quality_path = a.out / "quality.json"
     quality = json.loads(quality_path.read_text()) if quality_path.exists() else {}
     t_all = time.monotonic()

@@ -203,7 +203,8 @@ def test_playback_qos_adapts_offers():
     assert playback_qos([rel, be]).depth == 7
     assert playback_qos([rel]).durability == DurabilityPolicy.VOLATILE
     assert playback_qos([rel], best_effort=True).reliability == ReliabilityPolicy.BEST_EFFORT
-    assert playback_qos([QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0)]).history == HistoryPolicy.KEEP_ALL
+    keep_all = QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=0)
+    assert playback_qos([keep_all]).history == HistoryPolicy.KEEP_ALL
 
 
 def test_parameters_have_descriptions(ros, tmp_path):
@@ -258,9 +259,9 @@ def test_missing_bag_exits_nonzero_with_a_clear_message(tmp_path):
 def test_installed_executable_loops_until_signal(ros, tmp_path, signame):
     make_bag(tmp_path / "b", frames=3)
     col = ros.collector(PointCloud2, "/pts")
-    proc = ros.spawn([str(executable("lidar_quality_ros", "bag_player")), str(tmp_path / "b"), "--loop", "--topics", "/pts",
-                      "--wait-for-subscribers", "1"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                     text=True)
+    proc = ros.spawn([str(executable("lidar_quality_ros", "bag_player")), str(tmp_path / "b"), "--loop",
+                      "--topics", "/pts", "--wait-for-subscribers", "1"],
+                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     assert col.wait_for(5, timeout=30.0), "no message from the installed bag_player"
     proc.send_signal(getattr(signal, signame))
     out, _ = proc.communicate(timeout=20)

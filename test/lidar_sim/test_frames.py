@@ -21,7 +21,8 @@ def test_cache_round_trips_frames(tmp_path):
     cached = list(split_frames(sp, cache_dir=tmp_path))
     direct = list(sequence_frames(55000, 2))
     for a, b, c in zip(fresh, cached, direct):
-        assert (a.sequence, a.index, a.stamp_ns, a.gt_kitti_type) == (b.sequence, b.index, b.stamp_ns, b.gt_kitti_type)
+        assert ((a.sequence, a.index, a.stamp_ns, a.gt_kitti_type)
+                == (b.sequence, b.index, b.stamp_ns, b.gt_kitti_type))
         for k in _ARRAY_FIELDS:
             np.testing.assert_array_equal(getattr(a, k), getattr(b, k))
             np.testing.assert_array_equal(getattr(a, k), getattr(c, k))

@@ -410,8 +410,9 @@ def test_labels_class_names_and_extra_class_scores():
 def test_class_aware_and_score_threshold():
     plab = np.array([2, 2, 1, 2, 2, 2])
     args = (POINTS, INTEN, np.array([box()]), [0.9], [2])
-    n = lambda **kw: col(compute_features(*args, proposals=(PROPS, PSCORES, plab),
-                                          mode="threshold", **kw), "n_proposals")[0]
+    def n(**kw):
+        return col(compute_features(*args, proposals=(PROPS, PSCORES, plab),
+                                    mode="threshold", **kw), "n_proposals")[0]
     assert n() == 3 and n(class_aware=True) == 2          # proposal 2 has another class
     assert n(proposal_score_threshold=0.6) == 2           # proposal 1 (0.5) drops out
     assert n(proposal_score_threshold=0.7) == 1           # "above": 0.7 is not above 0.7
@@ -531,8 +532,9 @@ def test_rigid_motion_invariance(seed):
             lab_m = np.zeros(len(nms.keep), int)
         else:
             dets_m, sc_m, lab_m = dets, sc, lab
-        run = lambda p, d, pr: compute_features(p, inten, d, sc_m, lab_m, proposals=(pr, psc),
-                                                mode=mode, preimage=pre)
+        def run(p, d, pr):
+            return compute_features(p, inten, d, sc_m, lab_m, proposals=(pr, psc),
+                                    mode=mode, preimage=pre)
         a = run(pts, dets_m, props)
         b = run(_transform(pts, rot, t), _transform(dets_m, rot, t), _transform(props, rot, t))
         names = feature_names(mode)

@@ -36,7 +36,8 @@ def test_temperature_fit_recovers_a_known_temperature():
     assert t == pytest.approx(t_true, rel=0.05)
     np.testing.assert_allclose(apply_temperature(shown, t_true), true_p, atol=1e-9)
     # the fitted temperature lowers the NLL
-    nll = lambda p: -np.mean(np.log(p[np.arange(n), target]))  # noqa: E731
+    def nll(p):
+        return -np.mean(np.log(p[np.arange(n), target]))
     assert nll(apply_temperature(shown, t)) < nll(shown)
     # too little data or one target class: identity
     assert fit_temperature(shown[:5], target[:5]) == 1.0
@@ -85,7 +86,8 @@ def test_recalibration_per_class():
     assert r2.temperatures["pedestrian"] != 1.0
     cal2 = r2.calibrate(col, probs)
     np.testing.assert_allclose(cal2.sum(axis=1), 1.0)
-    nll = lambda p: -np.mean(np.log(p[ped][np.arange(ped.sum()), target2[ped]]))  # noqa: E731
+    def nll(p):
+        return -np.mean(np.log(p[ped][np.arange(ped.sum()), target2[ped]]))
     assert nll(cal2) < nll(probs)
     # the final thresholds are on the scaled scores: F1-optimal there
     sc = cal2[np.arange(n), col]

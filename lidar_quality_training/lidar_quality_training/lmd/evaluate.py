@@ -280,7 +280,8 @@ def evaluate(train_sets: dict, test_sets: dict, out: Path, *, mode: str = "thres
         ece_score = S["detector_score"][m]["ece"]
         acc[m] = {"kind": table2_kind, "auroc": auc,
                   "detector_score_auroc": S["detector_score"][m]["auroc"],
-                  "lmd_auroc_above_score": bool(auc["lmd"] > max(auc["score"], S["detector_score"][m]["auroc"])),
+                  "lmd_auroc_above_score": bool(auc["lmd"] > max(auc["score"],
+                                                                 S["detector_score"][m]["auroc"])),
                   "lmd_auroc_above_box": bool(auc["lmd"] > auc["box"]),
                   "ece_lmd": ece_lmd, "ece_detector_score": ece_score,
                   "ece_below_score": bool(ece_lmd < ece_score),

@@ -218,7 +218,8 @@ def model_card(results: dict, command: str) -> str:
         "proposal mode (`lmd_<mode>_classifier.joblib`, `lmd_<mode>_regressor.joblib`, each with "
         "a manifest: feature schema, SHA-256, training data, metrics).", "",
         "## Reproduce", "", "```bash", command, "```", "",
-        "(`lmd-train` is `python -m lidar_quality_training.lmd.train`; in the repository: `make lmd-models`.)", "",
+        "(`lmd-train` is `python -m lidar_quality_training.lmd.train`; in the repository: "
+        "`make lmd-models`.)", "",
         f"Estimator: `{tr['kind']}` (lidar_quality_core.meta_model), seed {tr['seed']}, "
         "single-threaded.", "",
         "## Data", "",

@@ -361,8 +361,9 @@ def write_report(out: Path, res: dict) -> Path:
         g = res["greedy"]
         g0 = g["classification"]
         L += ["", "## Table II: greedy metric selection", "",
-              f"Search: `{g0['kind']}` models (see the module doc of `lidar_quality_training.lms.evaluate` for "
-              f"why) on {g0['search_rows']} random training segments, {g0['search_folds']} "
+              f"Search: `{g0['kind']}` models (see the module doc of "
+              f"`lidar_quality_training.lms.evaluate` for why) on {g0['search_rows']} random training "
+              f"segments, {g0['search_folds']} "
               "grouped folds; criterion validation AUROC (classification) and R² "
               f"(regression); 'all' = every metric. Re-score: `{g0['rescore_kind']}` on all "
               f"segments in the {g0['rescore_folds']} folds of Table I (its 'all' = Table I's "

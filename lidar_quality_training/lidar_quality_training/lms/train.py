@@ -199,7 +199,7 @@ def _model_card(path: Path, data: dict, cv: dict | None, kind: str, command: str
              *_source_lines(data.get("data")),
              f"- Ground-truth label {data['ignore_label']} ignored in the targets; clouds "
              f"decoded as the node does (rows from: {data['ring_from']}).",
-             f"- Files: " + ", ".join(f"`{k}` {v / 1024:.0f} kB" for k, v in sizes.items()),
+             "- Files: " + ", ".join(f"`{k}` {v / 1024:.0f} kB" for k, v in sizes.items()),
              ""]
     if cv is None:
         lines += ["No cross validation (`--cv-folds 0`).", ""]
@@ -277,7 +277,8 @@ def train(ds: SegmentDataset, out, *, kind: str = "xgboost", n_folds: int = 10,
                "cv": None if cv is None else {t: {"train": cv[t]["train"], "val": cv[t]["val"]}
                                                for t in ("classification", "regression")}}
     if not quiet:
-        sys.stderr.write(f"wrote {cpath}, {rpath} ({', '.join(f'{v / 1024:.0f} kB' for v in sizes.values())})\n")
+        kbs = ", ".join(f"{v / 1024:.0f} kB" for v in sizes.values())
+        sys.stderr.write(f"wrote {cpath}, {rpath} ({kbs})\n")
     return summary
 
 

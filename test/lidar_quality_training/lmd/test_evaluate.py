@@ -23,7 +23,8 @@ def run(tmp_path_factory):
     out, docs = root / "report", root / "docs" / "lmd_reliability.png"
     rc = E.main(["--train", str(root / "meta_train"), "--test", str(root / "meta_test"),
                  "--out", str(out), "--cache", str(root / "cache"), "--kinds", "xgboost",
-                 "linear", "--cv-folds", "2", "--greedy-max", "2", "--greedy-rows", "0", "--greedy-features", *GREEDY,
+                 "linear", "--cv-folds", "2", "--greedy-max", "2", "--greedy-rows", "0",
+                 "--greedy-features", *GREEDY,
                  "--thumbnails", "2", "--review-k", "5", "10", "--docs-png", str(docs),
                  "--quiet"])
     assert rc == 0

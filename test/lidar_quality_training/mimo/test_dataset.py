@@ -6,8 +6,8 @@ from lidar_quality_core.iou import iou_bev
 from lidar_quality_core.pointcloud import read_fields
 from lidar_quality_ros.bag_io import BagWriter, read_bag
 from lidar_quality_ros.perception_bag import perception_frames
-from lidar_quality_training.mimo.dataset import (EVAL_MAX_RANGE, EVAL_MIN_POINTS, TP_IOU, MimoDataset, load_bags,
-                              read_bag as read_mimo_bag)
+from lidar_quality_training.mimo.dataset import (EVAL_MAX_RANGE, EVAL_MIN_POINTS, TP_IOU, MimoDataset,
+                                                load_bags, read_bag as read_mimo_bag)
 from mimo_ros.pipeline import STAT_FEATURES, MimoSettings, frame_features, head_detections
 from mimo_data import perception_bags
 

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from lidar_quality_core.detection_eval import Partition
 from lidar_quality_training.mimo.dataset import MimoDataset
-from lidar_quality_training.mimo.evaluate import (Detections, annotate, main, meta_distribution, regression_gt,
-                               split_groups)
+from lidar_quality_training.mimo.evaluate import (Detections, annotate, main, meta_distribution,
+                                                 regression_gt, split_groups)
 from lidar_quality_training.mimo.train import CARD_BEGIN, main as train_main
 from mimo_data import perception_bags
 
