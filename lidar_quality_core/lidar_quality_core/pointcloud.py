@@ -23,6 +23,7 @@ __all__ = [
     "cloud_to_structured",
     "read_fields",
     "check_xyz_fields",
+    "set_cloud_data",
     "xyz_intensity",
     "finite_mask",
     "PackedCloud",
@@ -306,9 +307,11 @@ def _alloc_bytes(nbytes: int) -> array.array:
     return array.array("B", b"\0") * nbytes
 
 
-def _set_data(msg, buf: array.array) -> None:
-    # The generated Jazzy setter re-copies through array.array('B', value) unless
-    # check_fields is on; buf already has exactly that type, so store it as is.
+def set_cloud_data(msg, buf: array.array) -> None:
+    """Give ``msg`` (a PointCloud2) ``buf`` as its data without a copy. The one place
+    that writes a rosidl private slot: the generated Jazzy setter re-copies through
+    array.array('B', value) unless check_fields is on, and buf already has exactly that
+    type. Falls back to the setter if the slot changes (a test notices the copy)."""
     try:
         msg._data = buf
     except AttributeError:
@@ -437,7 +440,7 @@ def create_cloud(header, fields):
                               for n, o, d, c in packed.fields],
                       is_bigendian=packed.is_bigendian, point_step=packed.point_step,
                       row_step=packed.point_step * packed.width, is_dense=packed.is_dense)
-    _set_data(msg, packed.data)
+    set_cloud_data(msg, packed.data)
     return msg
 
 

@@ -10,6 +10,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .conventions import wrap_angle as _wrap
+
 __all__ = ["SyntheticFrame", "synthetic_frame", "SENSOR_HEIGHT", "CLASS_NAMES"]
 
 SENSOR_HEIGHT = 1.8
@@ -39,10 +41,6 @@ class SyntheticFrame:
     prop_scores: np.ndarray   # (n_proposals,)
     prop_classes: np.ndarray  # (n_proposals,)
     prop_object: np.ndarray   # (n_proposals,) source object index, -1 for background
-
-
-def _wrap(a):
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def _sample_sizes(rng, classes):

@@ -13,6 +13,12 @@ _TYPES = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEG
           float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
 
 
+_LIVE = " Can be changed at run time (ros2 param set)."
+_READ_ONLY = " Read at start-up (read-only: restart the node to change it)."
+#: parameters rclpy declares on every node (not ours to document)
+RCLPY_PARAMETERS = ("use_sim_time", "start_type_description_service")
+
+
 def declare(node, name: str, default: Any, description: str, *, read_only: bool = True,
             min_value: float | None = None, max_value: float | None = None,
             choices: tuple[str, ...] | None = None) -> Any:
@@ -27,10 +33,7 @@ def declare(node, name: str, default: Any, description: str, *, read_only: bool 
     """
     if not description:
         raise ValueError(f"parameter {name!r} needs a description")
-    if not read_only:
-        description += " Can be changed at run time (ros2 param set)."
-    else:
-        description += " Read at start-up (read-only: restart the node to change it)."
+    description += _LIVE if not read_only else _READ_ONLY
     desc = ParameterDescriptor(name=name, description=description, read_only=read_only,
                                type=_TYPES.get(type(default), ParameterType.PARAMETER_NOT_SET))
     if choices:
@@ -77,3 +80,37 @@ def config_parameters(package: str, node_name: str) -> dict:
 
     return dict(yaml.safe_load(config_file(package, node_name).read_text())["/**"]
                 ["ros__parameters"])
+
+
+def _markdown_value(value) -> str:
+    if isinstance(value, str):
+        return f"`{value!r}`" if value == "" else f"`{value}`"
+    if isinstance(value, bool):
+        return f"`{str(value).lower()}`"
+    if isinstance(value, (list, tuple)):
+        return "`[" + ", ".join(str(v) for v in value) + "]`"
+    return f"`{value}`"
+
+
+def parameter_table(node) -> str:
+    """Markdown table of the parameters ``node`` declared (name, default, when a change
+    applies, description with range / choices), in declaration order: the package
+    READMEs' tables are this output (checked by the tests), so a parameter is described
+    once, where it is declared."""
+    rows = ["| parameter | default | change | description |", "|---|---|---|---|"]
+    for name, param in node._parameters.items():
+        if name in RCLPY_PARAMETERS:
+            continue
+        d = node.describe_parameter(name)
+        text = d.description.removesuffix(_LIVE).removesuffix(_READ_ONLY)
+        if d.additional_constraints:
+            text += f" ({d.additional_constraints})"
+        for r in list(d.floating_point_range) + list(d.integer_range):
+            lo, hi = (("-inf" if v <= -2**63 or v == -math.inf else
+                       "inf" if v >= 2**63 - 1 or v == math.inf else f"{v:g}")
+                      for v in (r.from_value, r.to_value))
+            text += f" Range [{lo}, {hi}]."
+        change = "restart" if d.read_only else "live"
+        rows.append(f"| `{name}` | {_markdown_value(param.value)} | {change} | "
+                    + text.replace("|", "\\|") + " |")
+    return "\n".join(rows) + "\n"

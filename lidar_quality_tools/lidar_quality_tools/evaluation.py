@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_quality_core import metrics
+from lidar_quality_core.conventions import TP_IOU
 
 #: method -> the output topic with its estimates (namespaced as the demo and
 #: ``process_bag`` run the nodes)
@@ -38,7 +39,6 @@ OUTPUT_TOPICS = {"lmd": "/lmd/output/quality", "lms": "/lms/output/segments",
 METHODS = tuple(OUTPUT_TOPICS)
 BASELINES = {"lmd": "detector score", "lms": "mean softmax probability",
              "mimo": "merged score"}
-TP_IOU = 0.5
 #: per-row columns of every method
 COLUMNS = ("tp", "iou", "confidence", "predicted_iou", "baseline")
 

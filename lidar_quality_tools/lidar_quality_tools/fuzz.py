@@ -41,6 +41,7 @@ from typing import Iterator, Sequence
 import numpy as np
 from lidar_quality_core.box_geometry import points_in_boxes
 from lidar_quality_core.boxes import arrays_to_detections
+from lidar_quality_core.conventions import probability_field
 from lidar_quality_core.pointcloud import cloud_to_structured, create_cloud
 from lidar_quality_core.synthetic import CLASS_NAMES as SYNTHETIC_CLASSES
 from lidar_quality_core.synthetic import SENSOR_HEIGHT, synthetic_frame
@@ -273,7 +274,7 @@ class FrameTemplate:
 
 def _point_probabilities(f, names: Sequence[str], rng) -> np.ndarray:
     """(N, K) plausible softmax probabilities over ``names`` (field names, '_' for '-')."""
-    norm = [n.replace("-", "_") for n in names]
+    norm = [probability_field(n) for n in names]
     label = np.full(len(f.points), norm.index("building") if "building" in norm else 0)
     if "road" in norm:
         label[f.points[:, 2] < -SENSOR_HEIGHT + 0.2] = norm.index("road")

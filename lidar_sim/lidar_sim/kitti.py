@@ -19,6 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from lidar_quality_core.conventions import wrap_angle
 
 IMAGE_WIDTH, IMAGE_HEIGHT = 1242, 375
 # The simulator's fixed calibration (use it through SIM_CALIB).
@@ -153,7 +154,7 @@ def camera_boxes(boxes, calib: Calibration) -> np.ndarray:
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 7)
     bottom = calib.velo_to_rect(np.column_stack([b[:, :2], b[:, 2] - b[:, 5] / 2]))
     # yaw about lidar z <-> rotation_y about camera y (the usual KITTI convention)
-    ry = (-b[:, 6] - np.pi / 2 + np.pi) % (2 * np.pi) - np.pi
+    ry = wrap_angle(-b[:, 6] - np.pi / 2)
     return np.column_stack([b[:, 5], b[:, 4], b[:, 3], bottom, ry])
 
 
@@ -162,7 +163,7 @@ def lidar_boxes(hwl_xyz_ry, calib: Calibration) -> np.ndarray:
     a = np.asarray(hwl_xyz_ry, dtype=np.float64).reshape(-1, 7)
     h, w, l = a[:, 0], a[:, 1], a[:, 2]
     v = calib.rect_to_velo(a[:, 3:6])
-    yaw = (-a[:, 6] - np.pi / 2 + np.pi) % (2 * np.pi) - np.pi
+    yaw = wrap_angle(-a[:, 6] - np.pi / 2)
     return np.column_stack([v[:, 0], v[:, 1], v[:, 2] + h / 2, l, w, h, yaw])
 
 
@@ -228,7 +229,7 @@ def in_image(boxes: np.ndarray, *, calib: Calibration) -> np.ndarray:
 
 
 def _wrap(a: float) -> float:
-    return float((a + np.pi) % (2 * np.pi) - np.pi)
+    return float(wrap_angle(a))
 
 
 OBJECT_CALIB = (("P0", P0), ("P1", P1), ("P2", P2), ("P3", P3), ("R0_rect", R0_RECT),

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from typing import NamedTuple
 
 import numpy as np
+from lidar_quality_core.conventions import wrap_angle
 
 from . import classes as C
 from .primitives import Primitives
@@ -229,16 +230,12 @@ class Scene:
         out[:, 1] = ob[:, 1] + s * lp[:, 0] + c * lp[:, 1]
         out[:, 2] = ob[:, 2] + lp[:, 2]
         out[:, 3:6] = lp[:, 3:6]
-        out[:, 6] = _wrap_angle(ob[:, 6] + lp[:, 6])
+        out[:, 6] = wrap_angle(ob[:, 6] + lp[:, 6])
         return (out, state.cls[r].astype(np.int32), state.instance[r].astype(np.int32),
                 th.part_reflectivity[sel].copy())
 
 
 # ----------------------------------------------------------------------------- helpers
-
-def _wrap_angle(a):
-    return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
-
 
 def _extents(l: float, w: float, yaw: float) -> tuple[float, float]:
     """Half extents along x and y of a rotated l x w footprint."""
@@ -504,7 +501,7 @@ def _lane_object(cfg, lane: Lane, rng):
             break
     else:
         raise RuntimeError(f"{C.class_name(cls)} does not fit its {lane.kind} lane")
-    return cls, l, w, h, float(_wrap_angle(yaw)), parts, refl, kitti
+    return cls, l, w, h, float(wrap_angle(yaw)), parts, refl, kitti
 
 
 def _lateral(lane: Lane, e_y: float, rng) -> float:
@@ -829,7 +826,7 @@ def _crossing(cfg: SceneConfig, objs: list[dict], ego, obstacles, rng, dt: float
             y0 = s * rng.uniform(walk_lo, walk_hi)
             y1 = -s * rng.uniform(walk_lo, walk_hi)
             speed = rng.uniform(1.2, 1.9)
-            yaw = float(_wrap_angle(-s * np.pi / 2 + rng.uniform(-0.08, 0.08)))
+            yaw = float(wrap_angle(-s * np.pi / 2 + rng.uniform(-0.08, 0.08)))
             x_lo = max(5.0, ego_x - 50.0)
             x_hi = min(L - 5.0, ego_x + ego_v * cfg.duration + 60.0)
             if x_hi <= x_lo:

@@ -89,6 +89,7 @@ import numpy as np
 
 from lidar_quality_core.box_geometry import (as_boxes, as_cloud, inbox_point_stats,
                                              segment_stats)
+from lidar_quality_core.conventions import wrap_angle as _wrap
 from lidar_quality_core.iou import iou_bev_pairs, sparse_iou
 
 __all__ = ["MODES", "OWN_QUANTITIES", "SET_QUANTITIES", "STATS", "DEFAULT_IOU_THRESHOLD",
@@ -187,10 +188,6 @@ class ProposalSets:
 
 
 # ------------------------------------------------------------------ helpers
-def _wrap(a):
-    return (a + np.pi) % (2.0 * np.pi) - np.pi
-
-
 def _class_ids(labels, n: int, class_names) -> np.ndarray:
     """Labels (ids or names) -> float class ids; unknown names -> -1."""
     if labels is None:

@@ -61,9 +61,10 @@ from pathlib import Path
 
 import numpy as np
 
+from lidar_quality_core.conventions import probability_field
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.pointcloud import (CloudFormatError, check_xyz_fields,
-                                            cloud_to_structured, pack_cloud)
+                                            cloud_to_structured, pack_cloud, set_cloud_data)
 from lidar_quality_core.range_image import RangeImageConfig
 
 from . import segment_metrics
@@ -101,12 +102,6 @@ _LIMIT_WHY = {
     "pixels": "a frame needs ~150 bytes per pixel (measured: ~600 MB and seconds of work "
               "at this bound), so far larger images fail every frame with MemoryError",
 }
-
-
-def probability_field(class_name: str) -> str:
-    """PointCloud2 field of a class probability (``traffic-sign`` -> ``traffic_sign``;
-    the same rule as ``reference_perception.messages.probability_field``)."""
-    return str(class_name).replace("-", "_").replace(" ", "_")
 
 
 @dataclass(frozen=True)
@@ -462,10 +457,7 @@ class LmsProcessor:
                                   for nm, o, d, c in packed.fields],
                           is_bigendian=packed.is_bigendian, point_step=packed.point_step,
                           row_step=packed.point_step * w, is_dense=packed.is_dense)
-        try:  # store the array.array as is (the generated setter would copy it again)
-            msg._data = packed.data
-        except AttributeError:
-            msg.data = packed.data
+        set_cloud_data(msg, packed.data)
         return msg
 
     def segment_array(self, header, res: SegmentResult, conf, iou):

@@ -40,7 +40,7 @@ import numpy as np
 from scipy.special import i0e, ndtr
 from scipy.stats import vonmises
 
-from .uncertainty import wrap_angle
+from lidar_quality_core.conventions import wrap_angle
 
 __all__ = ["PROB_FLOOR", "YAW_VAR_FLOOR", "classification_nll", "brier_score",
            "marginal_calibration_error", "gaussian_nll", "von_mises_nll", "regression_nll",

@@ -35,6 +35,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from lidar_quality_core.conventions import wrap_angle
 from scipy.special import entr
 
 __all__ = ["BOX_PARAMS", "ClusterStatistics", "entropy_bits", "wrap_angle", "group_mean",
@@ -44,11 +45,6 @@ BOX_PARAMS = ("x", "y", "z", "l", "w", "h", "yaw")
 YAW_DEVIATIONS = ("wrapped", "raw")
 YAW_VARIANCES = ("top", "mixture")
 LN2 = float(np.log(2.0))
-
-
-def wrap_angle(a):
-    """Angle(s) wrapped to [-pi, pi)."""
-    return (np.asarray(a) + np.pi) % (2.0 * np.pi) - np.pi
 
 
 def entropy_bits(p: np.ndarray) -> np.ndarray:

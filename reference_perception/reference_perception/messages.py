@@ -16,12 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 from lidar_quality_core.boxes import arrays_to_detections
+from lidar_quality_core.conventions import probability_field
 from lidar_quality_core.pointcloud import create_cloud
-
-
-def probability_field(class_name: str) -> str:
-    """PointCloud2 field name of a class probability (``traffic-sign`` -> ``traffic_sign``)."""
-    return class_name.replace("-", "_").replace(" ", "_")
 
 
 def detection_array(header, boxes: np.ndarray, class_probs: np.ndarray, class_names, ids=None,

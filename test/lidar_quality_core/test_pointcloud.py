@@ -746,3 +746,17 @@ def test_real_pcd_clouds(realdata, stem):
         dist = read_fields(hand, ["distance"])[:, 0]
         np.testing.assert_allclose(dist, np.linalg.norm(xyz_intensity(hand)[0], axis=1),
                                    rtol=1e-3, atol=1e-3)
+
+
+def test_set_cloud_data_stores_the_buffer_without_a_copy():
+    # the one rosidl private slot we write: if a rosidl release renames it, the fallback
+    # (the public setter) copies, and this test says so
+    import array
+
+    from lidar_quality_core.pointcloud import set_cloud_data
+    from sensor_msgs.msg import PointCloud2
+
+    buf = array.array("B", bytes(64))
+    msg = PointCloud2()
+    set_cloud_data(msg, buf)
+    assert msg.data is buf

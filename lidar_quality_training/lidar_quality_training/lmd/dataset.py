@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+from lidar_quality_core.conventions import TP_IOU
 from lidar_quality_core.progress import Progress
 from lidar_quality_ros.perception_bag import bag_group, resolve_bags
 
@@ -49,7 +50,6 @@ __all__ = ["TP_IOU", "KITTI_TYPES", "LmdDataset", "Progress", "resolve_bags", "b
            "kitti_to_lidar",
            "settings_for", "add_source_args", "settings_from_args", "load_from_args"]
 
-TP_IOU = 0.5
 CACHE_VERSION = 1
 #: KITTI object types -> our class names (lidar-sim writes vans of class truck as "Van").
 #: DontCare regions are skipped; other types keep their lower-case name (outside the

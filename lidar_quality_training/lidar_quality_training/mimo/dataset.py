@@ -38,13 +38,13 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from lidar_quality_core.conventions import TP_IOU
 
 from mimo_ros.pipeline import MimoSettings
 
 __all__ = ["TP_IOU", "EVAL_MIN_POINTS", "EVAL_MAX_RANGE", "MimoDataset", "read_bag",
            "load_bags", "resolve_bags"]
 
-TP_IOU = 0.5
 CACHE_VERSION = 1
 def _eval_defaults() -> tuple[int, float]:
     from reference_perception.clustering import ClusterConfig
