@@ -12,7 +12,7 @@ quality}``, ``/lms/output/{points,segments}``, ``/mimo/output/{detections,uncert
 Settings are the nodes': the installed ``config/<node>_node.yaml`` with ``--param
 node.name=value`` overrides (YAML values), mapped to the pipelines' settings and models
 as the nodes map them; the frame work is the nodes' processors (``LmdProcessor``,
-``LmsProcessor``, ``mimo_ros.pipeline.process_frame``), detection arrays decoded from
+``LmsProcessor``, ``mimo_ros.pipeline.MimoProcessor``), detection arrays decoded from
 their bytes (``detection_cdr``) as the nodes do. Inputs are grouped by header stamp; a
 frame is processed once it has all input topics of the bag, or when 16 newer stamps have
 come. A frame a node cannot process (missing input, undecodable or malformed message,
@@ -169,14 +169,14 @@ def _lms(p: dict) -> Runner:
 
 
 def _mimo(p: dict) -> Runner:
-    from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
-    from mimo_ros.pipeline import default_model_paths, process_frame
+    from mimo_ros.pipeline import MimoProcessor, NoHeadError, default_model_paths
 
     s = node_settings("mimo", p)
     models = _models("mimo", p, default_model_paths(s.use_points), s.feature_names())
-    if p["output_scores"] not in ("confidence", "merged"):
-        raise UsageError(f"mimo.output_scores must be confidence or merged, "
-                         f"got {p['output_scores']!r}")
+    try:
+        proc = MimoProcessor(s, models, scores=p["output_scores"])
+    except ValueError as exc:
+        raise UsageError(f"mimo.output_scores: {exc}") from None
     K = s.num_heads
     topics = {f"head_{k}": HEAD_TOPIC.format(k=k) for k in range(K)}
     if p["use_variances"]:
@@ -185,36 +185,26 @@ def _mimo(p: dict) -> Runner:
         topics["points"] = DEFAULT_TOPICS["points"]
 
     def run(get):
-        issues = {}
+        undecodable = {}
 
         def optional(key):  # as the node: a bad message is left out, the rest merged
             try:
                 return get(key)
             except Drop as exc:
-                issues["undecodable"] = str(exc)
+                undecodable["undecodable"] = str(exc)
                 return None
 
         heads = [optional(f"head_{k}") for k in range(K)]
-        present = [h for h in heads if h is not None]
-        if not present:
-            raise Drop("undecodable_input" if issues else "no_head", issues.get(
-                "undecodable", "no head message in this frame"))
         variances = ([optional(f"var_{k}") for k in range(K)] if p["use_variances"]
                      else None)
         cloud = optional("points") if s.use_points else None
-        if cloud is not None:
-            try:   # as the node: a bad cloud costs the point features, not the frame
-                cloud = xyz_intensity(cloud)
-            except CloudFormatError as exc:
-                cloud = None
-                issues["cloud"] = f"malformed input/points, point features NaN: {exc}"
-        out = process_frame(present[0].header, heads, variances, s, models, cloud_msg=cloud,
-                            scores=p["output_scores"], serialized=True)
-        if out.frame.issues:
-            issues["heads"] = "; ".join(out.frame.issues)
-        return ((out.detections, out.uncertainty),
-                {"boxes_in": sum(len(h) for h in present), "detections_out": len(out.frame),
-                 "partial_frames": int(len(present) < K)}, issues)
+        try:
+            res = proc.process(heads, variances, cloud)
+        except NoHeadError as exc:
+            raise Drop("undecodable_input" if undecodable else "no_head",
+                       undecodable.get("undecodable", str(exc))) from None
+        return ((res.out.detections, res.out.uncertainty), res.counts,
+                {**undecodable, **res.issues})
 
     return Runner("mimo", topics, (), run)
 

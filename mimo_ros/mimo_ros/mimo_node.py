@@ -1,5 +1,5 @@
 """``mimo_node``: LiDAR-MIMO merging of a multi-head detector with meta confidence and
-predicted IoU (a shell around ``mimo_ros.pipeline.process_frame``).
+predicted IoU (a shell around ``mimo_ros.pipeline.MimoProcessor``).
 
 Inputs (sensor-data QoS, matched by stamp): ``input/head_0`` .. ``input/head_{K-1}``
 (Detection3DArray, K = ``num_heads``), with ``use_variances`` also
@@ -37,9 +37,7 @@ import time
 from diagnostic_msgs.msg import DiagnosticStatus
 from lidar_quality_core.detection_cdr import decode_detection_array
 from lidar_quality_core.meta_model import MetaModels
-from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
 from lidar_quality_msgs.msg import BoxVarianceArray, ClusterUncertaintyArray
-from lidar_quality_ros.markers import box_markers
 from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.params import declare
 from lidar_quality_ros.qos import output_qos
@@ -50,8 +48,8 @@ from vision_msgs.msg import Detection3DArray
 from visualization_msgs.msg import MarkerArray
 
 from .merging import VOTING_RULES
-from .pipeline import (DEFAULT_CLASS_NAMES, InputLiveness, MimoSettings, default_model_paths,
-                       process_frame, settings_from_parameters)
+from .pipeline import (DEFAULT_CLASS_NAMES, InputLiveness, MimoProcessor, MimoSettings,
+                       NoHeadError, default_model_paths, settings_from_parameters)
 
 
 class MimoNode(QualityNode):
@@ -77,6 +75,7 @@ class MimoNode(QualityNode):
             "(the merged class distribution as it is).",
             lambda v: setattr(self, "output_scores", v), choices=("confidence", "merged"))
         self.models = self._load_models()
+        self.processor = MimoProcessor(self.settings, self.models, scores=self.output_scores)
 
         K = self.settings.num_heads
         topics = [(Detection3DArray, f"input/head_{k}") for k in range(K)]
@@ -206,41 +205,24 @@ class MimoNode(QualityNode):
         K = self.settings.num_heads
         msgs = synced.messages
         heads = list(msgs[:K])
-        present = [m for m in heads if m is not None]
-        if not present:
+        variances = list(msgs[K:2 * K]) if self.use_variances else None
+        cloud = msgs[-1] if self.settings.use_points else None
+        # markers cost about as much as the rest of the frame: only for a listener
+        markers = self.pub_markers is not None and self.pub_markers.get_subscription_count() > 0
+        self.processor.scores = self.output_scores
+        try:
+            res = self.processor.process(heads, variances, cloud, markers=markers)
+        except NoHeadError:
             self.diag.frame_dropped("no_head")
             return
-        variances = list(msgs[K:2 * K]) if self.use_variances else None
-        cloud = None
-        if self.settings.use_points and msgs[-1] is not None:
-            try:
-                cloud = xyz_intensity(msgs[-1])
-                self.diag.clear("cloud")
-            except CloudFormatError as exc:  # degrade: point features NaN, boxes still out
-                self.warn_input("cloud", f"malformed input/points, point features NaN: {exc}")
-        if len(present) < K:
+        if res.counts["partial_frames"]:
             self._partial_frames += 1
             self.diag.set_value("frames_partial", self._partial_frames)
-        header = present[0].header
-        out = process_frame(header, heads, variances, self.settings, self.models,
-                            cloud_msg=cloud, scores=self.output_scores, serialized=True)
-        issues = {}
-        if out.frame.issues:
-            issues["heads"] = "; ".join(out.frame.issues)
-        if cloud is not None and msgs[-1].header.frame_id != header.frame_id:
-            # the cloud arrives decoded (xyz, intensity): its frame is compared here
-            issues["cloud_frame_id"] = (f"input/points frame_id {msgs[-1].header.frame_id!r} "
-                                        f"differs from the heads' {header.frame_id!r} "
-                                        "(point features computed as if equal)")
-        self.report_issues(issues)
-        self.pub_detections.publish(out.detections)
-        self.pub_uncertainty.publish(out.uncertainty)
-        # markers cost about as much as the rest of the frame: only for a listener
-        if self.pub_markers is not None and self.pub_markers.get_subscription_count():
-            labels = out.frame.class_labels()
-            texts = [f"{c} {p:.2f}" for c, p in zip(labels, out.confidence.tolist())]
-            self.pub_markers.publish(box_markers(header, out.frame.merge.boxes, out.confidence,
-                                                 texts, ns="mimo"))
+        self.report_issues(res.issues)
+        self.pub_detections.publish(res.out.detections)
+        self.pub_uncertainty.publish(res.out.uncertainty)
+        if res.markers is not None:
+            self.pub_markers.publish(res.markers)
         self.diag.frame_processed((time.perf_counter() - t0) * 1e3)
 
 

@@ -56,7 +56,8 @@ from .uncertainty import BOX_PARAMS
 
 __all__ = ["DEFAULT_CLASS_NAMES", "STAT_FEATURES", "POINT_FEATURES", "MimoSettings",
            "head_detections", "MimoFrame", "frame_features", "default_model_paths",
-           "MimoOutput", "process_frame", "output_messages", "InputLiveness", "Arrival"]
+           "MimoOutput", "process_frame", "output_messages", "NoHeadError", "MimoFrameOutputs",
+           "MimoProcessor", "InputLiveness", "Arrival"]
 
 DEFAULT_CLASS_NAMES = ("car", "truck", "pedestrian", "cyclist")
 #: Cluster statistics of a merged detection (``feature_names`` order).
@@ -451,6 +452,74 @@ def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, mode
                                 confidence_model_id=models.confidence_model_id,
                                 iou_model_id=models.iou_model_id, serialized=serialized)
     return MimoOutput(frame, conf, iou, dets, unc)
+
+
+class NoHeadError(ValueError):
+    """A matched set without any head message (every head stopped or undecodable)."""
+
+
+@dataclass
+class MimoFrameOutputs:
+    """One frame's outputs as the node publishes them, with the input problems seen
+    (``issues``: cause -> text) and the frame's counts."""
+
+    out: MimoOutput
+    issues: dict
+    counts: dict
+    markers: object = None       # MarkerArray, or None when not asked for
+
+
+class MimoProcessor:
+    """mimo_node's frame contract without ROS: the K head messages (``None``: a head that
+    stopped), their variance messages (or None) and the cloud (a PointCloud2, or None) in;
+    the output messages, issues and counts out. The node and ``process_bag`` both call it.
+
+    A malformed cloud costs the point features (NaN), not the frame (issue ``cloud``); a
+    cloud in another frame than the heads is used as if equal (issue ``cloud_frame_id``);
+    head problems are issue ``heads``. No head at all raises :class:`NoHeadError`.
+    ``scores`` (``confidence`` | ``merged``) may be changed between frames."""
+
+    def __init__(self, settings: MimoSettings, models, *, scores: str = "confidence"):
+        settings.validate()
+        if scores not in ("confidence", "merged"):
+            raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
+        self.settings, self.models, self.scores = settings, models, scores
+
+    def process(self, heads: Sequence, variances: Sequence | None = None, cloud=None, *,
+                markers: bool = False) -> MimoFrameOutputs:
+        from lidar_quality_core.pointcloud import CloudFormatError
+
+        s = self.settings
+        present = [h for h in heads if h is not None]
+        if not present:
+            raise NoHeadError("no head message in this frame")
+        header = present[0].header
+        issues: dict[str, str] = {}
+        xyz = None
+        if s.use_points and cloud is not None:
+            try:
+                xyz = _decode_cloud(cloud)
+            except CloudFormatError as exc:  # degrade: point features NaN, boxes still out
+                issues["cloud"] = f"malformed input/points, point features NaN: {exc}"
+            else:
+                if cloud.header.frame_id != header.frame_id:
+                    issues["cloud_frame_id"] = (
+                        f"input/points frame_id {cloud.header.frame_id!r} differs from the "
+                        f"heads' {header.frame_id!r} (point features computed as if equal)")
+        out = process_frame(header, list(heads), variances, s, self.models, cloud_msg=xyz,
+                            scores=self.scores, serialized=True)
+        if out.frame.issues:
+            issues["heads"] = "; ".join(out.frame.issues)
+        mk = None
+        if markers:
+            from lidar_quality_ros.markers import box_markers
+
+            labels = out.frame.class_labels()
+            texts = [f"{c} {p:.2f}" for c, p in zip(labels, out.confidence.tolist())]
+            mk = box_markers(header, out.frame.merge.boxes, out.confidence, texts, ns="mimo")
+        counts = {"boxes_in": sum(len(_arrays(h)) for h in present),
+                  "detections_out": len(out.frame), "partial_frames": int(len(present) < len(heads))}
+        return MimoFrameOutputs(out, issues, counts, mk)
 
 
 # ------------------------------------------------------------------ head fallback

@@ -8,7 +8,8 @@ from mimo_ros.merging import HeadDetections, MergeConfig, merge_heads
 from mimo_ros.pipeline import (DEFAULT_CLASS_NAMES, POINT_FEATURES, STAT_FEATURES,
                                InputLiveness, MimoSettings, default_model_paths,
                                frame_features, head_detections, output_messages,
-                               process_frame, settings_from_parameters)
+                               process_frame, settings_from_parameters, MimoProcessor,
+                               NoHeadError)
 from reference_perception.messages import box_variance_array, detection_array
 from std_msgs.msg import Header
 
@@ -420,3 +421,38 @@ def test_liveness_short_loop_resets():
         for j in range(2):
             a = lv.arrival(j, t * S // 10)
             assert a.stopped == [] and a.placeholders == []
+
+
+def test_processor_is_the_node_frame_contract(models, tmp_path):
+    s = MimoSettings()
+    proc = MimoProcessor(s, models)
+    heads = [head_msg(BOXES + [0.05, 0, 0, 0, 0, 0, 0]), head_msg(ids=[3, 4, 5])]
+    res = proc.process(heads, None, markers=True)
+    ref = process_frame(heads[0].header, heads, None, s, models, serialized=True)
+    assert bytes(res.out.detections) == bytes(ref.detections)
+    np.testing.assert_array_equal(res.out.confidence, ref.confidence)
+    assert res.issues == {} and res.counts == {"boxes_in": 6, "detections_out": len(ref.frame),
+                                               "partial_frames": 0}
+    assert len(res.markers.markers) >= len(ref.frame)
+    assert proc.process([heads[0], None]).counts["partial_frames"] == 1
+    with pytest.raises(NoHeadError):
+        proc.process([None, None])
+    with pytest.raises(ValueError, match="scores"):
+        MimoProcessor(s, models, scores="fancy")
+    # with points: a malformed cloud costs the point features; another frame is said
+    sp = MimoSettings(use_points=True)
+    f = frame_features(heads, None, sp, (np.zeros((10, 3), np.float32), np.zeros(10, np.float32)))
+    X = np.vstack([f.features] * 4)
+    X[:, -5] = np.arange(len(X))
+    clf = fit_estimator("linear", "classification", X, (np.arange(len(X)) % 2).astype(float))
+    reg = fit_estimator("linear", "regression", X, np.linspace(0, 1, len(X)))
+    c, r = save_pair(tmp_path, "mimo_points", clf, reg, sp.feature_names())
+    pproc = MimoProcessor(sp, MetaModels(c, r, sp.feature_names()))
+    xyz = np.zeros((20, 3), np.float32)
+    cloud = create_xyz_cloud(heads[0].header, xyz, np.ones(20, np.float32))
+    cloud.header = Header(stamp=cloud.header.stamp, frame_id="base_link")
+    res = pproc.process(heads, None, cloud)
+    assert "cloud_frame_id" in res.issues and "'base_link'" in res.issues["cloud_frame_id"]
+    cloud.data = cloud.data[:7]
+    res = pproc.process(heads, None, cloud)
+    assert "cloud" in res.issues and np.isnan(res.out.frame.features[:, -5:]).all()
