@@ -158,6 +158,16 @@ class QualityNode(Node):
         self._check_timer = self.create_timer(
             1.0, self._check, clock=Clock(clock_type=ClockType.STEADY_TIME))
 
+    def input_fix(self, index: int) -> tuple[str, str]:
+        """``("<name> (subscribed as <resolved topic>)", "remap it ... [or <hint>]")`` of
+        input ``index`` of ``self.inputs``: how a log line names an absent input and its fix."""
+        name = self.inputs.topics[index]
+        resolved = self.inputs.subscriptions[index].topic_name
+        hint = self._input_hints.get(name)
+        return (f"{name} (subscribed as {resolved})",
+                f"remap it to your topic (--ros-args -r {name}:=<topic>)"
+                + (f" or {hint}" if hint else ""))
+
     def _check(self) -> None:
         self._ticks += 1
         inputs = getattr(self, "inputs", None)
@@ -173,14 +183,8 @@ class QualityNode(Node):
             self.diag.clear("inputs")
             return
         names = inputs.topics
-        resolved = [s.topic_name for s in inputs.subscriptions]
         if v.cause == "missing":
-            parts = []
-            for i in v.missing:
-                hint = self._input_hints.get(names[i])
-                parts.append(f"{names[i]} (subscribed as {resolved[i]}) has received nothing: "
-                             f"remap it to your topic (--ros-args -r {names[i]}:=<topic>)"
-                             + (f" or {hint}" if hint else ""))
+            parts = ["{} has received nothing: {}".format(*self.input_fix(i)) for i in v.missing]
             arriving = [names[i] for i in range(len(names)) if i not in v.missing]
             msg = (f"no frame for {v.silent_s:.0f} s: " + "; ".join(parts)
                    + f" (arriving: {', '.join(arriving)})")

@@ -68,14 +68,14 @@ class MimoNode(QualityNode):
             "its next message.", min_value=1e-3)
         self.publish_markers = declare(self, "publish_markers", True,
                                        "Publish output/markers (boxes coloured by confidence).")
-        self.output_scores = self.declare_live(
+        scores = self.declare_live(
             "output_scores", "confidence",
             "Hypothesis scores of output/detections: 'confidence' (the merged class "
             "distribution scaled so that the top score is the meta confidence) or 'merged' "
             "(the merged class distribution as it is).",
-            lambda v: setattr(self, "output_scores", v), choices=("confidence", "merged"))
+            lambda v: setattr(self.processor, "scores", v), choices=("confidence", "merged"))
         self.models = self._load_models()
-        self.processor = MimoProcessor(self.settings, self.models, scores=self.output_scores)
+        self.processor = MimoProcessor(self.settings, self.models, scores=scores)
 
         K = self.settings.num_heads
         topics = [(Detection3DArray, f"input/head_{k}") for k in range(K)]
@@ -181,15 +181,16 @@ class MimoNode(QualityNode):
             self.diag.set_value("inputs_stopped", ",".join(stopped) or "none")
 
     def _warn_stopped(self, j: int, level=DiagnosticStatus.WARN) -> None:
-        name = self.inputs.topics[j]
-        resolved = self.inputs.subscriptions[j].topic_name
-        hint = self._input_hints.get(name)
+        who, fix = self.input_fix(j)
         self.warn_input(
-            f"stopped.{name}",
-            f"{name} (subscribed as {resolved}) sent nothing for > {self.head_timeout} s of "
-            "stamp time while the other inputs arrive: merging without it; if it is not "
-            f"published, remap it (--ros-args -r {name}:=<topic>)"
-            + (f" or {hint}" if hint else ""), level)
+            f"stopped.{self.inputs.topics[j]}",
+            f"{who} sent nothing for > {self.head_timeout} s of stamp time while the other "
+            f"inputs arrive: merging without it; if it is not published, {fix}", level)
+
+    @property
+    def output_scores(self) -> str:
+        """Hypothesis scores of output/detections (parameter ``output_scores``, live)."""
+        return self.processor.scores
 
     def _check(self) -> None:
         super()._check()
@@ -209,7 +210,6 @@ class MimoNode(QualityNode):
         cloud = msgs[-1] if self.settings.use_points else None
         # markers cost about as much as the rest of the frame: only for a listener
         markers = self.pub_markers is not None and self.pub_markers.get_subscription_count() > 0
-        self.processor.scores = self.output_scores
         try:
             res = self.processor.process(heads, variances, cloud, markers=markers)
         except NoHeadError:

@@ -471,8 +471,9 @@ class MimoFrameOutputs:
 
 class MimoProcessor:
     """mimo_node's frame contract without ROS: the K head messages (``None``: a head that
-    stopped), their variance messages (or None) and the cloud (a PointCloud2, or None) in;
-    the output messages, issues and counts out. The node and ``process_bag`` both call it.
+    stopped), their variance messages (or None) and the cloud (a PointCloud2, an ``(xyz,
+    intensity)`` pair or None) in; the output messages, issues and counts out. The node
+    and ``process_bag`` both call it.
 
     A malformed cloud costs the point features (NaN), not the frame (issue ``cloud``); a
     cloud in another frame than the heads is used as if equal (issue ``cloud_frame_id``);
@@ -502,9 +503,10 @@ class MimoProcessor:
             except CloudFormatError as exc:  # degrade: point features NaN, boxes still out
                 issues["cloud"] = f"malformed input/points, point features NaN: {exc}"
             else:
-                if cloud.header.frame_id != header.frame_id:
+                frame_id = getattr(getattr(cloud, "header", None), "frame_id", None)
+                if frame_id is not None and frame_id != header.frame_id:
                     issues["cloud_frame_id"] = (
-                        f"input/points frame_id {cloud.header.frame_id!r} differs from the "
+                        f"input/points frame_id {frame_id!r} differs from the "
                         f"heads' {header.frame_id!r} (point features computed as if equal)")
         out = process_frame(header, list(heads), variances, s, self.models, cloud_msg=xyz,
                             scores=self.scores, serialized=True)
@@ -517,7 +519,7 @@ class MimoProcessor:
             labels = out.frame.class_labels()
             texts = [f"{c} {p:.2f}" for c, p in zip(labels, out.confidence.tolist())]
             mk = box_markers(header, out.frame.merge.boxes, out.confidence, texts, ns="mimo")
-        counts = {"boxes_in": sum(len(_arrays(h)) for h in present),
+        counts = {"boxes_in": sum(len(a) for a in out.frame.arrays),
                   "detections_out": len(out.frame), "partial_frames": int(len(present) < len(heads))}
         return MimoFrameOutputs(out, issues, counts, mk)
 
