@@ -21,7 +21,7 @@ from threadpoolctl import threadpool_limits
 
 from lidar_quality_core.nms import rotated_nms
 from lidar_quality_core.synthetic import synthetic_frame
-from lmd_ros.features import ProposalSets, compute_features
+from lidar_quality_core.lmd.features import ProposalSets, compute_features
 
 N_DET, N_PROP = 50, 500
 

@@ -1,5 +1,5 @@
 """LidarMetaSeg metrics figure: ``lms.metrics_ms`` (reported as ``_p50`` / ``_p99``) =
-:func:`lms_ros.segment_metrics.compute_segments` (projection, fill, heatmaps, segments,
+:func:`lidar_quality_core.lms.segment_metrics.compute_segments` (projection, fill, heatmaps, segments,
 all 86 + 2n metrics, point maps) on one simulated HDL-64 frame (64 x 2048, ~120k points,
 ring field) with 20-class probabilities, on ONE thread (target p50 <= 25 ms, p99 <= 50).
 
@@ -18,7 +18,7 @@ N_CLASSES = 20
 
 def bench_frame(seed: int = 11):
     """(xyz, probs (N, 20) float32, ring, intensity, semantic, cfg) of one frame."""
-    from lidar_quality_core.range_image import RangeImageConfig
+    from lidar_quality_core.lms.projection import RangeImageConfig
     from lidar_sim.frames import sequence_frames
     from lidar_sim.sensor import hdl64
 
@@ -42,7 +42,7 @@ def bench_frame(seed: int = 11):
 def figures():
     from threadpoolctl import threadpool_limits
 
-    from lms_ros.segment_metrics import compute_segments
+    from lidar_quality_core.lms.segment_metrics import compute_segments
 
     xyz, probs, ring, inten, _, cfg = bench_frame()
     # one BLAS thread only while this figure is timed (run.py times it before resuming us)
@@ -55,7 +55,7 @@ def figures():
 if __name__ == "__main__":
     import time
 
-    from lms_ros.segment_metrics import compute_segments
+    from lidar_quality_core.lms.segment_metrics import compute_segments
 
     xyz, probs, ring, inten, sem, cfg = bench_frame()
     res = compute_segments(xyz, probs, cfg, ring=ring, intensity=inten)

@@ -3,7 +3,7 @@
 One ``LmsProcessor.process`` call, the body of the node's frame callback: decode the
 cloud (one simulated HDL-64 frame, ~120k points, x, y, z, intensity, ring and 14 float32
 probability fields), check / renormalize the probabilities, all LidarMetaSeg metrics on
-the 64 x 2048 image (:func:`lms_ros.segment_metrics.compute_segments`), meta classifier
+the 64 x 2048 image (:func:`lidar_quality_core.lms.segment_metrics.compute_segments`), meta classifier
 and regressor on the kept segments, and the output messages (annotated PointCloud2 and
 the SegmentQualityArray of every segment). ``lms.node_frame_uint8_ms``: the same with
 uint8-quantized probability fields. Markers are built only while someone subscribes and
@@ -28,7 +28,7 @@ from lidar_quality_core import meta_model
 from lidar_quality_core.pointcloud import create_cloud
 from lms_ros.pipeline import (LmsProcessor, LmsSettings, decode, default_model_paths,
                               frame_metrics, probability_field)
-from lms_ros.segment_metrics import segment_targets
+from lidar_quality_core.lms.targets import segment_targets
 from std_msgs.msg import Header
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))

@@ -1,4 +1,4 @@
-"""LiDAR-MIMO merging figures (``mimo_ros.merging.merge_heads``, one thread).
+"""LiDAR-MIMO merging figures (``lidar_quality_core.mimo.merging.merge_heads``, one thread).
 
 Frames: 100 boxes per head, K heads; 90 objects at least 5 m apart in a 5-60 m annulus
 (cars, pedestrians, cyclists), 70 seen by every head, 20 "hard" ones seen by each head
@@ -13,7 +13,8 @@ Figures (ms, p50 / p99 over the repetitions):
 * ``mimo.merge_k2_ms``: K = 2 x 100 boxes (goal p99 <= 2 ms);
 * ``mimo.dbscan_{own,sklearn}_k{2,4}_ms`` (medians): the clustering step alone on the
   frames' neighbour pairs, our DBSCAN vs scikit-learn's on a dense precomputed matrix
-  (the choice documented in merging.py); ``mimo.pairs_k{2,4}_ms``: the pairwise IoU step.
+  (the choice documented in lidar_quality_core.mimo.clustering); ``mimo.pairs_k{2,4}_ms``:
+  the pairwise IoU step.
 """
 from __future__ import annotations
 
@@ -90,8 +91,8 @@ def _cycle(fn, frames):
 def figures():
     from threadpoolctl import threadpool_limits
 
-    from mimo_ros.merging import (HeadDetections, MergeConfig, dbscan_pairs, dbscan_sklearn,
-                                  merge_heads, neighbour_pairs)
+    from lidar_quality_core.mimo.clustering import dbscan_pairs, dbscan_sklearn, neighbour_pairs
+    from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, merge_heads
 
     cfg = MergeConfig()
     with threadpool_limits(limits=1):

@@ -116,7 +116,7 @@ def figures():
     from threadpoolctl import threadpool_limits
 
     from lidar_quality_ros.markers import box_markers
-    from mimo_ros.merging import merge_heads
+    from lidar_quality_core.mimo.merging import merge_heads
     from mimo_ros.pipeline import (MimoSettings, cluster_features, frame_features,
                                    head_detections, output_messages)
 

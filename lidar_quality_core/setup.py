@@ -5,7 +5,7 @@ package_name = "lidar_quality_core"
 setup(
     name=package_name,
     version="0.1.0",
-    packages=[package_name],
+    packages=[package_name, f"{package_name}.lmd", f"{package_name}.lms", f"{package_name}.mimo"],
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),

@@ -8,7 +8,7 @@ joined by header stamp. Per method the targets are those of its training data:
   (any class), true positive at IoU >= 0.5 (``lidar_quality_training.lmd.dataset``); baseline: the detector
   score (``original_score``).
 - LMS (``/lms/output/segments``): each segment's adjusted IoU, true segment at IoU_adj > 0
-  (``lms_ros.segment_metrics.segment_targets``), computed on the segmentation recomputed
+  (``lidar_quality_core.lms.segment_metrics.segment_targets``), computed on the segmentation recomputed
   from the input and checked against the recorded one (segment count, classes, sizes);
   baseline: the segment's mean top-class softmax probability (1 - mean V).
 - MIMO (``/mimo/output/uncertainty``): each merged box's BEV IoU with its best

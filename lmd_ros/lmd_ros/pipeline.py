@@ -9,7 +9,7 @@ Detection arrays come as Detection3DArray messages (bags, tests) or as
 deserialization of a few hundred proposals costs more than the whole frame); both give
 the same features.
 
-Proposal modes (``LmdSettings.proposal_mode``, see :mod:`lmd_ros.features`):
+Proposal modes (``LmdSettings.proposal_mode``, see :mod:`lidar_quality_core.lmd.features`):
 
 * ``"exact"``: only proposals come in; we run class-agnostic rotated BEV NMS on them
   (``nms_iou_threshold``, proposals scoring below ``nms_score_threshold`` or invalid take
@@ -52,10 +52,9 @@ from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
                                               rescaled_scores)
 from lidar_quality_core.model_store import models_dir
-from lidar_quality_core.nms import rotated_nms
 from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
-
-from . import features
+from lidar_quality_core.lmd import features
+from lidar_quality_core.lmd.proposal_sets import nms_preimages
 
 __all__ = ["MODES", "LmdSettings", "LmdFrame", "frame_features", "default_model_paths",
            "take_detections", "LmdOutputs", "LmdProcessor", "frame_id_mismatch"]
@@ -188,13 +187,8 @@ def _n_finite(xyz: np.ndarray, inten: np.ndarray) -> int:
 
 def _exact_nms(props: DetectionArrays, settings: LmdSettings):
     """(keep, suppressed_by) over all proposals; invalid ones take no part."""
-    sel = np.flatnonzero(props.valid)
-    res = rotated_nms(props.boxes[sel], props.scores[sel], settings.nms_iou_threshold,
-                      score_threshold=settings.nms_score_threshold)
-    sup = np.full(len(props), -1, dtype=np.int64)
-    sub = res.suppressed_by
-    sup[sel[sub >= 0]] = sel[sub[sub >= 0]]
-    return sel[res.keep], sup
+    return nms_preimages(props.boxes, props.scores, props.valid, settings.nms_iou_threshold,
+                         settings.nms_score_threshold)
 
 
 def _arrays(dets) -> DetectionArrays:

@@ -25,7 +25,7 @@ Outputs (header copied from ``input/points``):
 * ``/diagnostics``.
 
 The frame work is :class:`lms_ros.pipeline.LmsProcessor` (no ROS; definitions in
-:mod:`lms_ros.pipeline` and :mod:`lms_ros.segment_metrics`); this shell declares the
+:mod:`lms_ros.pipeline` and :mod:`lidar_quality_core.lms.segment_metrics`); this shell declares the
 parameters, loads the models (refusing to start when they are missing or do not fit the
 class map), subscribes, calls the processor and publishes. A cloud that cannot be decoded
 (missing field, wrong type, point counts that differ) drops the frame (counted as

@@ -65,10 +65,10 @@ from lidar_quality_core.conventions import probability_field
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.pointcloud import (CloudFormatError, check_xyz_fields,
                                             cloud_to_structured, pack_cloud, set_cloud_data)
-from lidar_quality_core.range_image import RangeImageConfig
+from lidar_quality_core.lms.projection import RangeImageConfig
 
-from . import segment_metrics
-from .segment_metrics import SegmentResult, compute_segments
+from lidar_quality_core.lms import segment_metrics
+from lidar_quality_core.lms.segment_metrics import SegmentResult, compute_segments
 
 __all__ = ["CLASS_NAMES", "NO_LABEL", "INTENSITY_FIELDS", "MAX_CHANNELS", "MAX_WIDTH",
            "MAX_PIXELS", "LmsSettings", "LmsInput",

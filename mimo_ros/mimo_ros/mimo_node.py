@@ -47,7 +47,7 @@ from sensor_msgs.msg import PointCloud2
 from vision_msgs.msg import Detection3DArray
 from visualization_msgs.msg import MarkerArray
 
-from .merging import VOTING_RULES
+from lidar_quality_core.mimo.clustering import VOTING_RULES
 from .pipeline import (DEFAULT_CLASS_NAMES, InputLiveness, MimoProcessor, MimoSettings,
                        NoHeadError, default_model_paths, settings_from_parameters)
 

@@ -51,8 +51,8 @@ from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
 from lidar_quality_core.detection_cdr import encode_detections
 from lidar_quality_core.model_store import models_dir
 
-from .merging import HeadDetections, MergeConfig, MergeResult, merge_heads
-from .uncertainty import BOX_PARAMS
+from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, MergeResult, merge_heads
+from lidar_quality_core.mimo.uncertainty import BOX_PARAMS
 
 __all__ = ["DEFAULT_CLASS_NAMES", "STAT_FEATURES", "POINT_FEATURES", "MimoSettings",
            "head_detections", "MimoFrame", "frame_features", "default_model_paths",
@@ -66,7 +66,7 @@ STAT_FEATURES = (("cluster_size", "head_fraction", "shannon_entropy", "aleatoric
                  + tuple(f"epistemic_var_{p}" for p in BOX_PARAMS)
                  + tuple(f"aleatoric_var_{p}" for p in BOX_PARAMS)
                  + ("score", "class", "distance"))
-#: LMD own-box point features of the merged box (the same quantities as ``lmd_ros.features``).
+#: LMD own-box point features of the merged box (the same quantities as ``lidar_quality_core.lmd.features``).
 POINT_FEATURES = ("points", "points_frac", "refl_max", "refl_mean", "refl_std")
 _MODEL_PREFIX = {False: "mimo", True: "mimo_points"}
 

@@ -11,7 +11,7 @@ learn where the street lies around the car (only the BEV cell grid is tied to th
 
 * the point itself: range, z, height above ground (:func:`reference_perception.ground.
   estimate_ground`), intensity, elevation, ring row;
-* its range-image neighbourhood (:mod:`lidar_quality_core.range_image`, periodic in
+* its range-image neighbourhood (:mod:`lidar_quality_core.lms.projection`, periodic in
   azimuth): a surface normal from range-gated neighbour differences (verticality, incidence
   angle and a reflectivity estimate ``intensity / cos(incidence)``), range jumps to the
   neighbours, curvature, and 5 x 5 / 3 x 11 window statistics (height spread, range spread,
@@ -50,7 +50,7 @@ from typing import Any, Iterable
 import numpy as np
 from lidar_quality_core import metrics as qm
 from lidar_quality_core.model_store import models_dir
-from lidar_quality_core.range_image import RangeImageConfig, project, window_reduce
+from lidar_quality_core.lms.projection import RangeImageConfig, project, window_reduce
 from lidar_sim.classes import CLASS_NAMES, NUM_CLASSES, UNLABELED
 
 from .ground import estimate_ground

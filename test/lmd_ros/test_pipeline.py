@@ -13,7 +13,7 @@ from lidar_quality_core.pointcloud import CloudFormatError, create_cloud, create
 from rclpy.serialization import deserialize_message, serialize_message
 from vision_msgs.msg import Detection3DArray
 from lmd_frames import CLASS_NAMES, frame_messages, header, train_models
-from lmd_ros.features import ProposalSets, compute_features, feature_names
+from lidar_quality_core.lmd.features import ProposalSets, compute_features, feature_names
 from lmd_ros.pipeline import (LmdProcessor, LmdSettings, default_model_paths,
                               frame_features, frame_id_mismatch)
 

@@ -15,7 +15,7 @@ from lidar_quality_core.pointcloud import create_cloud, read_fields
 from lidar_quality_msgs.msg import SegmentQualityArray
 from lms_ros.lms_node import LmsNode
 from lms_ros.pipeline import CLASS_NAMES, decode, frame_metrics, probability_field
-from lms_ros.segment_metrics import to_points
+from lidar_quality_core.lms.segment_metrics import to_points
 from lms_scans import (cloud, frame_cloud, frame_probs, header, node_parameters, noisy_probs,
                        scans, settings, train_models)
 from node_shell_checks import (assert_declared_with_descriptions, assert_sensor_qos,

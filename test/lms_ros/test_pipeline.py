@@ -6,7 +6,7 @@ from lidar_quality_core import meta_model
 from lidar_quality_core.pointcloud import CloudFormatError, create_cloud, read_fields
 from lms_ros.pipeline import (CLASS_NAMES, NO_LABEL, LmsProcessor, LmsSettings, decode,
                               default_model_paths, frame_metrics)
-from lms_ros.segment_metrics import compute_segments, to_points
+from lidar_quality_core.lms.segment_metrics import compute_segments, to_points
 from lms_scans import COLS, cloud, frame_cloud, scans, train_models
 from lms_scans import frame_probs as noisy_probs
 from lms_scans import settings as _settings

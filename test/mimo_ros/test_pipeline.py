@@ -4,7 +4,7 @@ import pytest
 from lidar_quality_core.boxes import detections_to_arrays
 from lidar_quality_core.meta_model import MetaModels, fit_estimator, save_pair
 from lidar_quality_core.pointcloud import create_xyz_cloud
-from mimo_ros.merging import HeadDetections, MergeConfig, merge_heads
+from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, merge_heads
 from mimo_ros.pipeline import (DEFAULT_CLASS_NAMES, POINT_FEATURES, STAT_FEATURES,
                                InputLiveness, MimoSettings, default_model_paths,
                                frame_features, head_detections, output_messages,
@@ -179,7 +179,7 @@ def test_malformed_boxes_are_left_out_and_reported():
 
 
 def test_points_features_of_the_merged_box():
-    from lmd_ros.features import OWN_QUANTITIES, compute_features
+    from lidar_quality_core.lmd.features import OWN_QUANTITIES, compute_features
 
     rng = np.random.default_rng(1)
     xyz = np.vstack([BOXES[0, :3] + rng.uniform(-0.5, 0.5, (40, 3)),

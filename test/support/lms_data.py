@@ -55,7 +55,7 @@ def train_node_models(out_dir: Path, frames, settings) -> tuple:
     recorded as ``lms-train`` records them. Returns the two paths."""
     from lidar_quality_core import meta_model
     from lms_ros.pipeline import decode, frame_metrics
-    from lms_ros.segment_metrics import segment_targets
+    from lidar_quality_core.lms.targets import segment_targets
 
     from lms_scans import frame_cloud, frame_probs
 

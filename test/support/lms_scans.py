@@ -84,7 +84,7 @@ def train_models(out_dir, frames, draws: int = 3):
     ``out_dir/lms_{classifier,regressor}.joblib``. Returns their paths."""
     from lidar_quality_core import meta_model
     from lms_ros.pipeline import decode, frame_metrics
-    from lms_ros.segment_metrics import segment_targets
+    from lidar_quality_core.lms.targets import segment_targets
 
     s = settings()
     X, y = [], []

@@ -41,6 +41,7 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 import numpy as np
+from lidar_quality_training.cache import source_hash
 from lidar_quality_core.conventions import TP_IOU
 from lidar_quality_core.progress import Progress
 from lidar_quality_ros.perception_bag import bag_group, resolve_bags
@@ -288,12 +289,10 @@ def _modes_of(settings_list) -> list[str]:
 
 # ---------------------------------------------------------------------------- caching
 def _code_hash() -> str:
-    from lmd_ros import features, pipeline
+    from lidar_quality_core.lmd import features
+    from lmd_ros import pipeline
 
-    h = hashlib.sha256()
-    for path in (__file__, features.__file__, pipeline.__file__):
-        h.update(Path(path).read_bytes())
-    return h.hexdigest()
+    return source_hash(__file__, features, pipeline)
 
 
 def _fingerprint(files: Iterable[Path]) -> list:

@@ -238,8 +238,8 @@ def model_card(results: dict, command: str) -> str:
         f"- Target: {tr['target']} (class-agnostic, as the authors' code); TP iff "
         f"{tr['tp_rule']}.", "",
         "## Features", "",
-        "`lmd_ros.features` (the paper's set): 17 own-box quantities (x, y, z, l, w, h, theta, "
-        "score, class, volume, surface, size ratio, points in box, fraction of the cloud's "
+        "`lidar_quality_core.lmd.features` (the paper's set): 17 own-box quantities (x, y, z, l, w, h, "
+        "theta, score, class, volume, surface, size ratio, points in box, fraction of the cloud's "
         "points, reflectance max / mean / std); for `exact` and `threshold` also min / max / "
         "mean / std over the proposal set of the 16 non-class quantities, of IoU_3D and IoU_BEV "
         "to the proposals, and the number of proposals (90 in all). `none`: the 17 own-box "
@@ -256,7 +256,7 @@ def model_card(results: dict, command: str) -> str:
         "describe the other proposals only. Following the authors would change every box "
         "with another proposal and need the models retrained. A proposal is the box itself "
         "only with its geometry and its score; the features do not depend on the order of "
-        "the proposals (`lmd_ros.features`).", "",
+        "the proposals (`lidar_quality_core.lmd.features`).", "",
         "## Metrics", "",
         (f"Grouped {tr['cv_folds']}-fold cross validation over the training sequences "
          "(mean ± std over folds)" if tr["cv_folds"] else

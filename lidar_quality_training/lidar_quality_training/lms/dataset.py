@@ -3,7 +3,7 @@
 Rows are computed with the node's own code: clouds are decoded by
 :func:`lms_ros.pipeline.decode` and measured by :func:`lms_ros.pipeline.frame_metrics`,
 so a model is trained on exactly the metrics the node computes online; the targets IoU and
-IoU_adj come from :func:`lms_ros.segment_metrics.segment_targets`.
+IoU_adj come from :func:`lidar_quality_core.lms.segment_metrics.segment_targets`.
 
 Sources (:func:`discover_sources`):
 
@@ -47,6 +47,7 @@ from pathlib import Path
 from typing import Iterator, Sequence
 
 import numpy as np
+from lidar_quality_training.cache import source_hash
 from lidar_quality_core.progress import Progress
 
 __all__ = ["CACHE_VERSION", "DEFAULT_BLOCK_FRAMES", "Source", "SegmentDataset", "code_version",
@@ -301,7 +302,7 @@ def frame_rows(inp, gt_labels, settings=None, *, ignore_label: int | None = 0):
     (:func:`lms_ros.pipeline.frame_metrics`) and the targets of its kept segments; ``keep``
     marks the rows with a defined IoU."""
     from lms_ros.pipeline import frame_metrics
-    from lms_ros.segment_metrics import segment_targets
+    from lidar_quality_core.lms.targets import segment_targets
 
     settings = _settings(settings)
     res = frame_metrics(inp, settings)
@@ -358,17 +359,11 @@ def _settings_dict(settings) -> dict:
 def code_version() -> str:
     """Short hash of the sources that compute the rows (part of the cache key): a change
     to the decoding, projection, fill or metrics invalidates the cache."""
-    import lidar_quality_core
+    from lidar_quality_core import pointcloud
+    from lidar_quality_core.lms import fill, projection, segment_metrics
+    from lms_ros import pipeline
 
-    from lms_ros import pipeline, segment_metrics
-
-    core = Path(lidar_quality_core.__file__).parent
-    h = hashlib.sha256()
-    for p in (Path(__file__), Path(pipeline.__file__), Path(segment_metrics.__file__),
-              core / "range_image.py", core / "range_image_fill.py", core / "pointcloud.py"):
-        h.update(p.name.encode())
-        h.update(p.read_bytes())
-    return h.hexdigest()[:12]
+    return source_hash(__file__, pipeline, segment_metrics, projection, fill, pointcloud)
 
 
 def _cache_path(cache_dir: Path, source: Source, settings, ignore_label, ring_from) -> Path:

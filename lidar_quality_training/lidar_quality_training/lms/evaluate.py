@@ -172,7 +172,7 @@ def figure1(path, source, index: int, models_dir, settings, *, ignore_label=0,
     and the points in bird's eye view by true and predicted IoU_adj."""
     from matplotlib.colors import ListedColormap
 
-    from lms_ros.segment_metrics import to_points
+    from lidar_quality_core.lms.segment_metrics import to_points
 
     inp, gt, res, iou, iou_adj = load_frame(source, index, settings, ignore_label=ignore_label,
                                             ring_from=ring_from)

@@ -38,6 +38,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from lidar_quality_training.cache import source_hash
 from lidar_quality_core.conventions import TP_IOU
 
 from mimo_ros.pipeline import MimoSettings
@@ -390,12 +391,10 @@ def resolve_bags(paths: Sequence) -> list[Path]:
 
 
 def _code_hash() -> str:
-    from mimo_ros import merging, pipeline, uncertainty
+    from lidar_quality_core.mimo import merging, uncertainty
+    from mimo_ros import pipeline
 
-    h = hashlib.sha256()
-    for path in (__file__, pipeline.__file__, merging.__file__, uncertainty.__file__):
-        h.update(Path(path).read_bytes())
-    return h.hexdigest()
+    return source_hash(__file__, pipeline, merging, uncertainty)
 
 
 def _cache_path(cache_dir, bag: Path, settings: MimoSettings) -> Path:

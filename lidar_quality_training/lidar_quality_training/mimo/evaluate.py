@@ -66,8 +66,8 @@ from lidar_quality_core.jsonable import jsonable
 from lidar_quality_core.detection_eval import (KITTI_IOU_THRESHOLDS, Partition, fp_partition,
                                                match_frame, summarize)
 
-from mimo_ros import scoring_rules as sr
-from mimo_ros.calibration import Recalibration
+from lidar_quality_core.mimo import scoring_rules as sr
+from lidar_quality_core.mimo.calibration import Recalibration
 from .dataset import TP_IOU, MimoDataset, load_bags
 from .train import CARD_BEGIN, CARD_END, PREFIXES, add_data_arguments
 

@@ -11,7 +11,8 @@ from lms_data import COLUMNS, perception_bags, semantickitti_dir
 from lidar_quality_training.lms.dataset import (SegmentDataset, build_dataset, discover_sources, load_frame,
                              subsequence_groups)
 from lms_ros.pipeline import LmsSettings
-from lms_ros.segment_metrics import compute_segments, segment_targets
+from lidar_quality_core.lms.segment_metrics import compute_segments
+from lidar_quality_core.lms.targets import segment_targets
 
 SETTINGS = LmsSettings(width=COLUMNS)
 

@@ -82,7 +82,6 @@ clipping per pair.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
@@ -91,6 +90,8 @@ from lidar_quality_core.box_geometry import (as_boxes, as_cloud, inbox_point_sta
                                              segment_stats)
 from lidar_quality_core.conventions import wrap_angle as _wrap
 from lidar_quality_core.iou import iou_bev_pairs, sparse_iou
+
+from .proposal_sets import ProposalSets
 
 __all__ = ["MODES", "OWN_QUANTITIES", "SET_QUANTITIES", "STATS", "DEFAULT_IOU_THRESHOLD",
            "SELF_IOU", "SELF_SCORE_TOL", "ProposalSets", "feature_names", "compute_features"]
@@ -137,54 +138,6 @@ def feature_names(mode: str = "exact", extra_class_scores=None) -> tuple[str, ..
         names += [f"iou_3d_{s}" for s in STATS] + [f"iou_bev_{s}" for s in STATS]
         names.append("n_proposals")
     return tuple(names) + _extra_names(extra_class_scores)
-
-
-@dataclass(frozen=True)
-class ProposalSets:
-    """Proposal indices per post-NMS box as CSR: box ``k`` owns
-    ``index[offsets[k]:offsets[k + 1]]``."""
-
-    offsets: np.ndarray  # (n_boxes + 1,) int64
-    index: np.ndarray    # int64 proposal indices
-
-    @classmethod
-    def from_lists(cls, sets: Sequence[Sequence[int]]) -> "ProposalSets":
-        """From one index sequence per box."""
-        counts = np.array([len(s) for s in sets], dtype=np.int64)
-        offsets = np.zeros(len(counts) + 1, dtype=np.int64)
-        np.cumsum(counts, out=offsets[1:])
-        parts = [np.asarray(s, dtype=np.int64).reshape(-1) for s in sets]
-        index = np.concatenate(parts) if parts else np.zeros(0, np.int64)
-        return cls(offsets, index)
-
-    @classmethod
-    def from_owner(cls, owner, n_boxes: int) -> "ProposalSets":
-        """From the owning box per proposal (``-1``: none)."""
-        owner = np.asarray(owner, dtype=np.int64).reshape(-1)
-        if len(owner) and owner.max(initial=-1) >= n_boxes:
-            raise ValueError(f"owner refers to box {owner.max()} of {n_boxes}")
-        sel = np.flatnonzero(owner >= 0)
-        order = sel[np.argsort(owner[sel], kind="stable")]
-        offsets = np.zeros(n_boxes + 1, dtype=np.int64)
-        np.cumsum(np.bincount(owner[sel], minlength=n_boxes), out=offsets[1:])
-        return cls(offsets, order.astype(np.int64))
-
-    @classmethod
-    def from_nms(cls, suppressed_by, keep) -> "ProposalSets":
-        """Pre-images of the survivors ``keep`` (post-NMS box k = proposal ``keep[k]``)
-        from ``rotated_nms(...)``: ``{j : suppressed_by[j] == keep[k]}``, survivor
-        included."""
-        sup = np.asarray(suppressed_by, dtype=np.int64).reshape(-1)
-        keep = np.asarray(keep, dtype=np.int64).reshape(-1)
-        pos = np.full(len(sup) + 1, -1, dtype=np.int64)  # [-1] -> -1 for dropped boxes
-        pos[keep] = np.arange(len(keep))
-        return cls.from_owner(pos[sup], len(keep))
-
-    def pairs(self) -> tuple[np.ndarray, np.ndarray]:
-        """(box index, proposal index) per member, grouped by box."""
-        off = np.asarray(self.offsets, dtype=np.int64)
-        return (np.repeat(np.arange(len(off) - 1), np.diff(off)),
-                np.asarray(self.index, dtype=np.int64)[off[0]:off[-1]])
 
 
 # ------------------------------------------------------------------ helpers

@@ -1,15 +1,16 @@
-"""LidarMetaSeg (LMS) segment metrics and targets (paper section II; no rclpy).
+"""LidarMetaSeg (LMS) segment metrics (paper section II; no rclpy).
 
 Shared by the node, training and evaluation. One call, :func:`compute_segments`, turns a
 cloud with per-point softmax probabilities into the paper's segments, their metrics in the
-order of :func:`metric_names`, and the point <-> segment maps; :func:`segment_targets`
-adds IoU and IoU_adj given per-point ground truth; :func:`to_points` maps per-segment
-values (confidence, predicted IoU) back to the points.
+order of :func:`metric_names`, and the point <-> segment maps;
+:func:`lidar_quality_core.lms.targets.segment_targets` adds IoU and IoU_adj given per-point
+ground truth; :func:`to_points` maps per-segment values (confidence, predicted IoU) back to
+the points.
 
 Every definition, and the choices the paper leaves open ("ours"):
 
 Projection (II-A)
-  :func:`lidar_quality_core.range_image.project` with the sensor's
+  :func:`lidar_quality_core.lms.projection.project` with the sensor's
   :class:`RangeImageConfig` (rows = channels, cols = 360 deg / angular resolution, beam
   elevations or a uniform vertical field of view) or the cloud's ``ring`` field; each
   pixel keeps its nearest point (smallest range, then lowest index). Points that are
@@ -18,7 +19,7 @@ Projection (II-A)
 Fill and delta (II-A)
   Every empty pixel takes the point of its nearest projected pixel (Euclidean in pixel
   units, azimuth periodic, rows not; ties: the same ring first, then left, then up; see
-  :mod:`lidar_quality_core.range_image_fill`); every image (probabilities, prediction,
+  :mod:`lidar_quality_core.lms.fill`); every image (probabilities, prediction,
   heatmaps, x, y, z, intensity, range, ground truth) is filled through that one map.
   delta = the pixel holds a projected point. An image without any projected point has no
   segment.
@@ -59,18 +60,8 @@ Exclusion
   Segments with SP < ``min_points`` (default 10, paper III-A) are not kept: the feature
   matrix and the targets have one row per kept segment (``SegmentResult.kept_ids``);
   their points still carry their segment id.
-Targets (eq. (10), (11)), on projected pixels only
-  The ground truth is projected and filled through the same map; its segments are its
-  8-connected components of equal class (seam periodic). K' = union of the ground-truth
-  segments of the segment's class that intersect it (as pixel sets of the filled image);
-  IoU = |k n K'|_d / |k u K'|_d. IoU_adj = |k n K'|_d / |k u (K' \\ Q)|_d with Q the
-  predicted segments *of the same class* meeting K' (the paper's text omits "of the same
-  class", but with every class Q would cover K' and IoU_adj would degenerate; MetaSeg's
-  code and the paper's explanation mean this one): the ground-truth pixels that other
-  segments of the class predict do not count against k, the missed ones still do.
-  IoU = 0 <=> IoU_adj = 0. 0/0 gives NaN (a segment without any counted pixel).
-  ``ignore_label`` pixels (e.g. unlabeled) are left out of every count (delta = 0 for
-  the targets) and match no class.
+Targets (eq. (10), (11))
+  IoU and IoU_adj of each segment: :mod:`lidar_quality_core.lms.targets`.
 Points
   A projected point takes its pixel's segment when its own predicted class is the
   pixel's; a point that lost its pixel to a nearer point of another class takes the
@@ -83,11 +74,11 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.sparse import coo_matrix, csc_matrix
-from scipy.sparse.csgraph import connected_components
+from scipy.sparse import csc_matrix
 
-from lidar_quality_core.range_image import Projection, RangeImageConfig, project
-from lidar_quality_core.range_image_fill import nearest_source
+from lidar_quality_core.lms.projection import Projection, RangeImageConfig, project
+from lidar_quality_core.lms.fill import nearest_source
+from lidar_quality_core.lms.segments import interior_mask, label_periodic, neighbour_class_counts
 
 __all__ = [
     "MEASURES",
@@ -95,10 +86,7 @@ __all__ = [
     "n_metrics",
     "SegmentResult",
     "compute_segments",
-    "segment_targets",
     "to_points",
-    "label_periodic",
-    "interior_mask",
     "dispersion",
 ]
 
@@ -138,86 +126,6 @@ def metric_names(n_classes: int, class_names: Sequence[str] | None = None) -> tu
     names += list(_SIZES)
     names += [f"N_{c}" for c in class_names] + [f"P_{c}" for c in class_names]
     return tuple(names)
-
-
-# -- image helpers -----------------------------------------------------------------------
-
-
-def label_periodic(classes, return_values: bool = False):
-    """8-connected components of equal value of an int image (rows, cols), columns
-    periodic, rows not. Pixels < 0 are background (label -1). Returns ``(labels int32,
-    n)``, ids 0..n-1 ordered by each component's first pixel in raster order, and with
-    ``return_values`` also the value of each component.
-
-    Runs of equal value along each row are the nodes; two runs of adjacent rows are
-    joined where they overlap (checked only where one of them starts) or touch
-    diagonally (checked only at run ends); the runs at both ends of a row are joined
-    across the seam. Components of that graph (scipy.sparse.csgraph), mapped back to
-    pixels.
-    """
-    Y = np.asarray(classes)
-    if Y.ndim != 2:
-        raise ValueError(f"classes must be 2-D, got shape {Y.shape}")
-    R, C = Y.shape
-    if Y.size == 0:
-        out = (np.full((R, C), -1, dtype=np.int32), 0)
-        return out + (np.zeros(0, Y.dtype),) if return_values else out
-    start = np.empty((R, C), dtype=bool)
-    start[:, 0] = True
-    np.not_equal(Y[:, 1:], Y[:, :-1], out=start[:, 1:])
-    run = np.cumsum(start.reshape(-1), dtype=np.int32)
-    run -= 1
-    n_runs = int(run[-1]) + 1
-    rows = np.arange(R)
-    pa = [rows[Y[:, -1] == Y[:, 0]] * C + (C - 1)]                 # across the seam
-    pb = [pa[0] - (C - 1)]
-    if R > 1:
-        top, bot = Y[:-1], Y[1:]
-        f = np.flatnonzero((start[:-1] | start[1:]) & (top == bot))  # overlap (vertical)
-        pa.append(f)
-        pb.append(f + C)
-        # down-right from the last pixel of a top run, down-left from its first pixel;
-        # columns wrap around
-        end = np.empty((R - 1, C), dtype=bool)
-        end[:, :-1] = start[:-1, 1:]
-        end[:, -1] = True
-        for at, dc in ((end, 1), (start[:-1], -1)):
-            f = np.flatnonzero(at & (top == np.roll(bot, -dc, axis=1)))
-            r, c = np.divmod(f, C)
-            pa.append(f)
-            pb.append((r + 1) * C + (c + dc) % C)
-    ea, eb = run[np.concatenate(pa)], run[np.concatenate(pb)]
-    g = coo_matrix((np.ones(len(ea), dtype=np.int8), (ea, eb)), shape=(n_runs, n_runs))
-    n, comp = connected_components(g, directed=False)   # labels in order of first run
-    comp = comp.astype(np.int32)
-    run_value = Y.reshape(-1)[np.flatnonzero(start)]
-    value = np.empty(n, dtype=Y.dtype)
-    value[comp] = run_value
-    if run_value.min() < 0:
-        # background runs are components too: drop them and compact the ids
-        is_fg = value >= 0
-        new_id = np.cumsum(is_fg, dtype=np.int32) - 1
-        new_id[~is_fg] = -1
-        comp = new_id[comp]
-        value = value[is_fg]
-        n = int(is_fg.sum())
-    labels = comp[run].reshape(R, C)
-    return (labels, int(n), value) if return_values else (labels, int(n))
-
-
-def interior_mask(classes) -> np.ndarray:
-    """(rows, cols) bool: all 8 neighbours exist and have the pixel's value (columns
-    periodic; the top and bottom rows are never interior)."""
-    Y = np.asarray(classes)
-    R, C = Y.shape
-    out = np.zeros((R, C), dtype=bool)
-    if R < 3:
-        return out
-    right = Y == np.roll(Y, -1, axis=1)
-    h3 = right & np.roll(right, 1, axis=1)          # equal to both horizontal neighbours
-    out[1:-1] = (h3[1:-1] & h3[:-2] & h3[2:]
-                 & (Y[1:-1] == Y[:-2]) & (Y[1:-1] == Y[2:]))
-    return out
 
 
 def _class_major(probs: np.ndarray, block: int = 4096) -> np.ndarray:
@@ -341,38 +249,6 @@ def _empty_result(n, names_arg, proj, N, point_class, E, D, V) -> SegmentResult:
         kept=np.zeros(0, bool), features=np.zeros((0, n_metrics(n))),
         point_segment=np.full(N, -1, np.int32), point_class=point_class,
         point_E=E, point_D=D, point_V=V)
-
-
-def _neighbour_classes(segments, Y, px, n_seg, n):
-    """(n_seg, n) counts of each segment's neighbourhood pixels per class, each pixel
-    once: every pixel of ``px`` (flat indices; the non-interior pixels, the only ones
-    with a neighbour in another segment) adds its class to every distinct other segment
-    among its 8 neighbours (columns periodic, rows outside the image ignored)."""
-    R, C = segments.shape
-    W = C + 2
-    pad = np.full((R + 2, W), -1, dtype=np.int32)
-    pad[1:-1, 1:-1] = segments
-    pad[1:-1, 0] = segments[:, -1]
-    pad[1:-1, -1] = segments[:, 0]
-    flat = pad.reshape(-1)
-    r, c = np.divmod(px, C)
-    base = (r + 1) * W + (c + 1)
-    own = segments.reshape(-1)[px]
-    cls = Y.reshape(-1)[px].astype(np.int64)
-    dummy = n_seg * n                      # bin of the entries that do not count
-    keys = np.empty((8, len(px)), dtype=np.int64)
-    seen = []
-    for j, o in enumerate((-W - 1, -W, -W + 1, -1, 1, W - 1, W, W + 1)):
-        v = flat[base + o]
-        keep = v != own
-        keep &= v >= 0
-        for u in seen:                     # a segment met twice around a pixel counts once
-            keep &= v != u
-        seen.append(v)
-        np.multiply(v, n, out=keys[j])
-        keys[j] += cls
-        np.copyto(keys[j], dummy, where=~keep)
-    return np.bincount(keys.reshape(-1), minlength=dummy + 1)[:dummy].reshape(n_seg, n)
 
 
 def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=None,
@@ -504,7 +380,7 @@ def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=Non
     stats[:, :, 9] = var[:, 1] * S_rel_in[:, None]
 
     # neighbourhood class ratios N_c
-    nbc = _neighbour_classes(segments, Y, np.flatnonzero(~inn), n_seg, n)[kid]
+    nbc = neighbour_class_counts(segments, Y, np.flatnonzero(~inn), n_seg, n)[kid]
     tot = nbc.sum(axis=1, keepdims=True)
     Nc = np.divide(nbc, tot, out=np.zeros(nbc.shape), where=tot > 0)
     # mean class probabilities P_c
@@ -573,45 +449,3 @@ def to_points(result: SegmentResult, per_segment, fill=np.nan) -> np.ndarray:
     ok[ok] = has[ps[ok]]
     out[ok] = full[ps[ok]]
     return out
-
-
-def segment_targets(result: SegmentResult, gt_labels, ignore_label: int | None = None,
-                    kept_only: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """``(iou, iou_adj)`` float64 per kept segment (the rows of ``features``), or per
-    segment with ``kept_only=False``, from the ground-truth class of every point of the
-    cloud ``result`` was computed from (``gt_labels`` (N,) in [0, n), or
-    ``ignore_label``). See the module doc."""
-    gt = np.asarray(gt_labels).reshape(-1)
-    N, n = len(result.point_class), result.n_classes
-    if len(gt) != N:
-        raise ValueError(f"gt_labels has {len(gt)} entries, the cloud {N}")
-    ign = np.zeros(N, dtype=bool) if ignore_label is None else gt == ignore_label
-    if ((gt[~ign] < 0) | (gt[~ign] >= n)).any():
-        raise ValueError(f"ground-truth labels outside [0, {n}) (and not ignore_label)")
-    ns = result.n_segments
-    rows = result.kept_ids if kept_only else np.arange(ns)
-    if ns == 0:
-        return np.zeros(0), np.zeros(0)
-    g = np.where(ign, n, gt).astype(np.int32)        # ignored pixels: a class of their own
-    G = g[result.source.reshape(-1)]
-    Y = result.pred.reshape(-1)
-    seg = result.segments.reshape(-1)
-    d = result.delta.reshape(-1) & (G < n)
-    gl, ng = label_periodic(G.reshape(result.source.shape))
-    gl = gl.reshape(-1)
-    match = G == Y
-    inter = np.bincount(seg[d & match], minlength=ns)             # |k n K'|_d
-    size = np.bincount(seg[d], minlength=ns)                       # |k|_d
-    g_size = np.bincount(gl[d], minlength=ng)                      # |g|_d
-    g_miss = np.bincount(gl[d & ~match], minlength=ng)             # |g \ pred == c|_d
-    # (segment, gt segment) pairs that intersect with equal class: K' of each segment
-    pairs = np.unique(seg[match].astype(np.int64) * ng + gl[match])
-    pk, pg = np.divmod(pairs, ng)
-    K = np.bincount(pk, weights=g_size[pg], minlength=ns)
-    K_miss = np.bincount(pk, weights=g_miss[pg], minlength=ns)
-    union = size + K - inter
-    union_adj = size + K_miss
-    with np.errstate(invalid="ignore", divide="ignore"):
-        iou = inter / union
-        iou_adj = inter / union_adj
-    return iou[rows], iou_adj[rows]

@@ -1,11 +1,11 @@
-"""Tests for mimo_ros.uncertainty (LiDAR-MIMO cluster statistics)."""
+"""Tests for lidar_quality_core.mimo.uncertainty (LiDAR-MIMO cluster statistics)."""
 import math
 
 import numpy as np
 import pytest
 
-from mimo_ros.uncertainty import (cluster_statistics, entropy_bits, group_mean,
-                                  regression_statistics, wrap_angle)
+from lidar_quality_core.mimo.uncertainty import (cluster_statistics, entropy_bits, group_mean,
+                                                 regression_statistics, wrap_angle)
 
 
 def h2(p):

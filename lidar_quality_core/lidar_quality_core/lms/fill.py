@@ -6,7 +6,7 @@ the fill is expressed once, as an index: :func:`nearest_source` gives for every 
 flat index of its nearest projected pixel, so any image (class, probabilities, x, y, z,
 ground truth) is filled consistently by one gather.
 
-Conventions (those of :mod:`lidar_quality_core.range_image`):
+Conventions (those of :mod:`lidar_quality_core.lms.projection`):
 
 * distance: Euclidean in pixel units (one row = one column), the column axis periodic
   (columns 0 and ``cols - 1`` are neighbours: the seam behind the car is not an edge),

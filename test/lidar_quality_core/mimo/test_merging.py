@@ -1,17 +1,13 @@
-"""Tests for mimo_ros.merging (LiDAR-MIMO clustering and merging)."""
+"""Tests for lidar_quality_core.mimo.merging (LiDAR-MIMO clustering and merging)."""
 import math
 import zlib
 from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
-from sklearn.cluster import DBSCAN
 
-from lidar_quality_core.iou import sparse_iou
-from mimo_ros.merging import (HeadDetections, MergeConfig, dbscan_pairs, dbscan_sklearn,
-                              merge_heads, min_cluster_size, neighbour_pairs)
+from lidar_quality_core.mimo.clustering import min_cluster_size
+from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, merge_heads
 
 CAR = np.array([10.0, 5.0, -1.0, 4.5, 1.9, 1.6, 0.3])
 PED = np.array([10.5, 5.0, -1.0, 0.8, 0.7, 1.7, 0.0])  # inside the car's footprint
@@ -34,13 +30,6 @@ def h2(p):
 def softmax(z):
     e = np.exp(z - np.max(z))
     return e / e.sum()
-
-
-# ------------------------------------------------------------------ voting rules
-@pytest.mark.parametrize("K, rules", [(1, (1, 1, 1)), (2, (1, 2, 2)), (3, (1, 2, 3)),
-                                      (4, (1, 3, 4)), (5, (1, 3, 5))])
-def test_min_cluster_size(K, rules):
-    assert tuple(min_cluster_size(v, K) for v in ("affirmative", "consensus", "unanimous")) == rules
 
 
 def test_config_validation():
@@ -312,75 +301,6 @@ def test_one_head_boxes_can_share_a_cluster():
     near = CAR + [0.3, 0, 0, 0, 0, 0, 0]  # IoU ~0.87: a head whose NMS kept both
     r = merge_heads([head([CAR, near], CAR_LOGITS), head(CAR, CAR_LOGITS)])
     assert len(r) == 1 and r.stats.cluster_size[0] == 3
-
-
-# ------------------------------------------------------------------ DBSCAN and pairs
-def _sk(n, i, j, ms):
-    d = np.ones((n, n))
-    np.fill_diagonal(d, 0.0)
-    d[i, j] = d[j, i] = 0.0
-    return DBSCAN(eps=0.5, min_samples=ms, metric="precomputed").fit_predict(d)
-
-
-def test_dbscan_border_point_goes_to_the_first_cluster():
-    # cores 0-1 and 3-4 (min 2 with a chain), point 2 touches both as a border point
-    # with min_samples 3: 0, 1 ... build: 0-1, 1-2, 2-3, 3-4, and 0-5, 4-6
-    i = np.array([0, 1, 2, 3, 0, 4, 1])
-    j = np.array([1, 2, 3, 4, 5, 6, 5])
-    for ms in (1, 2, 3, 4):
-        np.testing.assert_array_equal(dbscan_pairs(7, i, j, ms), _sk(7, i, j, ms))
-
-
-@settings(max_examples=200, deadline=None)
-@given(st.integers(1, 25), st.integers(1, 5), st.integers(0, 2**31 - 1), st.floats(0.02, 0.4))
-def test_own_dbscan_equals_sklearn(n, ms, seed, density):
-    rng = np.random.default_rng(seed)
-    iu, ju = np.triu_indices(n, 1)
-    keep = rng.random(len(iu)) < density
-    i, j = iu[keep], ju[keep]
-    perm = rng.permutation(len(i))  # pair order must not matter
-    np.testing.assert_array_equal(dbscan_pairs(n, i[perm], j[perm], ms), _sk(n, i, j, ms))
-    np.testing.assert_array_equal(dbscan_sklearn(n, i, j, ms), _sk(n, i, j, ms))
-
-
-def _ref_pairs(boxes, eps, labels=None):
-    i, j, v = sparse_iou(boxes)
-    k = (1.0 - v) <= eps
-    if labels is not None:
-        k &= labels[i] == labels[j]
-    return set(zip(i[k].tolist(), j[k].tolist()))
-
-
-@settings(max_examples=150, deadline=None)
-@given(st.integers(2, 30), st.integers(0, 2**31 - 1), st.sampled_from([0.2, 0.5, 0.7, 0.9]),
-       st.sampled_from(["free", "square", "aligned", "near45", "copies"]))
-def test_neighbour_pairs_equal_thresholded_sparse_iou(n, seed, eps, kind):
-    rng = np.random.default_rng(seed)
-    b = np.column_stack([rng.uniform(0, 5, (n, 2)), np.zeros(n), rng.uniform(0.3, 4, (n, 2)),
-                         np.ones(n), rng.uniform(-4, 4, n)])
-    if kind == "square":
-        b[:, 4] = b[:, 3]
-    elif kind == "aligned":
-        b[:, 6] = rng.choice([0.0, math.pi / 2, math.pi, -math.pi], n)
-    elif kind == "near45":
-        b[:, 6] = rng.choice([0.0, math.pi / 4 + 1e-9, -math.pi / 4], n)
-    elif kind == "copies":  # jittered copies: IoU near every threshold
-        jitter = rng.normal(0, 0.15, (n - n // 2, 7)) * [1, 1, 0, 0.3, 0.3, 0, 0.3]
-        b[n // 2:] = b[: n - n // 2] + jitter
-        b[:, 3:5] = np.abs(b[:, 3:5]) + 0.05
-    labels = rng.integers(0, 2, n)
-    i, j = neighbour_pairs(b, eps)
-    assert np.all(i < j)
-    assert set(zip(i.tolist(), j.tolist())) == _ref_pairs(b, eps)
-    i, j = neighbour_pairs(b, eps, labels)
-    assert set(zip(i.tolist(), j.tolist())) == _ref_pairs(b, eps, labels)
-
-
-def test_neighbour_pairs_identical_and_invalid_boxes():
-    b = np.stack([CAR, CAR, CAR, PED])
-    b[2, 3] = 0.0
-    assert set(zip(*map(list, neighbour_pairs(b, 0.5)))) == {(0, 1)}
-    assert len(neighbour_pairs(b[:1], 0.5)[0]) == 0
 
 
 def test_sklearn_option_gives_the_same_merge():

@@ -1,8 +1,8 @@
-"""mimo_ros.calibration: F1-optimal thresholds and temperature scaling."""
+"""lidar_quality_core.mimo.calibration: F1-optimal thresholds and temperature scaling."""
 import numpy as np
 import pytest
-from mimo_ros.calibration import (Recalibration, apply_temperature, f1_optimal_threshold,
-                                  fit_temperature)
+from lidar_quality_core.mimo.calibration import (Recalibration, apply_temperature, f1_optimal_threshold,
+                                                 fit_temperature)
 
 
 def test_f1_threshold_on_a_toy_set():

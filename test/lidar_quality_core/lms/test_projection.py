@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from lidar_quality_core.range_image import (RangeImageConfig, project, shift, window_reduce,
-                                            window_stats)
+from lidar_quality_core.lms.projection import (RangeImageConfig, project, shift, window_reduce,
+                                               window_stats)
 
 
 def _point(az_deg, el_deg, r=10.0):

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from lidar_quality_core.range_image_fill import fill_image, nearest_source
+from lidar_quality_core.lms.fill import fill_image, nearest_source
 
 
 def brute_nearest(mask):

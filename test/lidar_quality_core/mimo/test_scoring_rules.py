@@ -1,12 +1,12 @@
-"""mimo_ros.scoring_rules against hand-computed values and closed forms."""
+"""lidar_quality_core.mimo.scoring_rules against hand-computed values and closed forms."""
 import math
 
 import numpy as np
 import pytest
-from mimo_ros.scoring_rules import (brier_score, classification_nll, energy_score,
-                                    gaussian_nll, marginal_calibration_error, regression_cdf,
-                                    regression_calibration_error, regression_nll,
-                                    sample_energy_score, von_mises_nll)
+from lidar_quality_core.mimo.scoring_rules import (brier_score, classification_nll, energy_score,
+                                                   gaussian_nll, marginal_calibration_error, regression_cdf,
+                                                   regression_calibration_error, regression_nll,
+                                                   sample_energy_score, von_mises_nll)
 from scipy.stats import norm
 
 

@@ -1,4 +1,4 @@
-"""Tests for lmd_ros.features (LidarMetaDetect box-wise features)."""
+"""Tests for lidar_quality_core.lmd.features (LidarMetaDetect box-wise features)."""
 import math
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 
 from lidar_quality_core.iou import iou_3d, iou_bev
 from lidar_quality_core.nms import rotated_nms
-from lmd_ros.features import (OWN_QUANTITIES, SET_QUANTITIES, ProposalSets, compute_features,
-                              feature_names)
+from lidar_quality_core.lmd.features import (OWN_QUANTITIES, SET_QUANTITIES, ProposalSets, compute_features,
+                                             feature_names)
 
 STATS = ("min", "max", "mean", "std")
 

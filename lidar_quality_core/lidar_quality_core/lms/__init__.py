@@ -1,0 +1,1 @@
+"""LidarMetaSeg core: range-image projection, segments, segment metrics and targets."""
