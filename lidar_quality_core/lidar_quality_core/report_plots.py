@@ -1,7 +1,8 @@
-"""Figures and tables of the evaluation reports (LMD, LMS, MIMO, demo).
+"""Figures of the evaluation reports (LMD, LMS, MIMO, demo).
 
 matplotlib is imported only here and only when drawing (Agg canvas, no display needed).
-Every function writes one PNG and returns its path.
+Every function writes one PNG and returns its path. The tables and model cards are
+``lidar_quality_training.report``'s.
 """
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ import numpy as np
 from .metrics import reliability_diagram
 
 __all__ = ["figure", "save", "reliability_png", "scatter_png", "curve_png", "histogram_png",
-           "draw_bev_box", "bev_boxes_png", "bev_values_png", "markdown_table", "fmt"]
+           "draw_bev_box", "bev_boxes_png", "bev_values_png"]
 
 
 def figure(width: float = 5.0, height: float = 4.0):
@@ -176,27 +177,3 @@ def bev_values_png(path, xy, panels: Mapping[str, Sequence[float]], *, label: st
     if title:
         fig.suptitle(title, fontsize=10)
     return save(fig, path)
-
-
-def fmt(x, digits: int = 3) -> str:
-    """A number for a table cell (NaN as '–')."""
-    if x is None:
-        return "–"
-    if isinstance(x, (tuple, list)) and len(x) == 2:
-        return f"{fmt(x[0], digits)} ± {fmt(x[1], digits)}"
-    try:
-        xf = float(x)
-    except (TypeError, ValueError):
-        return str(x)
-    if not np.isfinite(xf):
-        return "–"
-    if xf == int(xf) and abs(xf) >= 1 and digits >= 0 and isinstance(x, (int, np.integer)):
-        return str(int(xf))
-    return f"{xf:.{digits}f}"
-
-
-def markdown_table(header: Sequence[str], rows: Sequence[Sequence], digits: int = 3) -> str:
-    """A GitHub markdown table; cells pass through :func:`fmt` (``digits`` decimals)."""
-    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-    lines += ["| " + " | ".join(fmt(c, digits) for c in r) + " |" for r in rows]
-    return "\n".join(lines) + "\n"

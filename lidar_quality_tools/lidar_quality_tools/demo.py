@@ -436,7 +436,7 @@ def write_report(out: Path, summary: dict, ev, live: dict) -> list[Path]:
 
 
 def report_markdown(summary: dict, figs: list[Path]) -> str:
-    from lidar_quality_core.report_plots import markdown_table
+    from lidar_quality_training.report import markdown_table
 
     from .evaluation import BASELINES
 

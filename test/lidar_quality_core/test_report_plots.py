@@ -1,4 +1,4 @@
-"""Report figures are written as PNGs and tables format NaN."""
+"""Report figures are written as PNGs."""
 import numpy as np
 from lidar_quality_core import report_plots as rp
 
@@ -15,8 +15,3 @@ def test_figures(tmp_path):
     assert _png(rp.scatter_png(tmp_path / "s.png", p, p + 0.1 * rng.normal(size=500)))
     assert _png(rp.curve_png(tmp_path / "c.png", ["x", "y"], [0.5, 0.7], ylabel="AUROC"))
     assert _png(rp.histogram_png(tmp_path / "h.png", {"lmd": p * 10}, xlabel="ms"))
-
-
-def test_markdown_table():
-    t = rp.markdown_table(["m", "v"], [["a", float("nan")], ["b", (0.5, 0.01)], ["c", 3]])
-    assert "| a | – |" in t and "0.500 ± 0.010" in t and "| c | 3 |" in t

@@ -36,6 +36,7 @@ from lidar_quality_core.jsonable import jsonable
 from lidar_quality_core import metrics as M
 from lidar_quality_core import report_plots as RP
 
+from ..report import fmt, markdown_table
 from . import annotation_review as AR
 from .dataset import LmdDataset, Progress, add_source_args, load_from_args, settings_from_args
 from .train import MODES, classification_metrics, regression_metrics
@@ -302,9 +303,9 @@ def _report(S, kinds, cv_kinds, t2kind, main_kind, cv_folds) -> str:
     d = S["data"]
     L = [f"# LMD evaluation ({mode} mode)", "",
          f"Training: {d['train']['frames']} frames, {d['train']['boxes']} boxes (TP rate "
-         f"{RP.fmt(d['train']['tp_rate'])}) from {d['train']['groups']} sequences; held out: "
+         f"{fmt(d['train']['tp_rate'])}) from {d['train']['groups']} sequences; held out: "
          f"{d['test']['frames']} frames, {d['test']['boxes']} boxes (TP rate "
-         f"{RP.fmt(d['test']['tp_rate'])}) from {d['test']['groups']} sequences. Target: "
+         f"{fmt(d['test']['tp_rate'])}) from {d['test']['groups']} sequences. Target: "
          f"IoU_BEV with the best ground-truth box ({'same class' if S['class_aware'] else 'any class'}); "
          "TP iff IoU_BEV >= 0.5. Methods: **Score** = meta model on the detector score only; "
          "**Box features** = on the box's own features x, y, z, l, w, h, theta, score, class "
@@ -318,11 +319,11 @@ def _report(S, kinds, cv_kinds, t2kind, main_kind, cv_folds) -> str:
                                 ("R²", "regression", "r2")):
         L += [f"### Held-out {title} (Table I shape)", ""]
         rows = [[METHODS[m]] + [H[k][m][task][metric] for k in kinds] for m in METHODS]
-        L.append(RP.markdown_table(["method"] + kl, rows, digits=4))
+        L.append(markdown_table(["method"] + kl, rows, digits=4))
     ds = S["detector_score"][mode]
-    L += [f"Detector score itself (no meta model): accuracy {RP.fmt(ds['accuracy'], 4)}, AUROC "
-          f"{RP.fmt(ds['auroc'], 4)}, AUPRC {RP.fmt(ds['auprc'], 4)}, ECE {RP.fmt(ds['ece'], 4)}, "
-          f"MCE {RP.fmt(ds['mce'], 4)}.", ""]
+    L += [f"Detector score itself (no meta model): accuracy {fmt(ds['accuracy'], 4)}, AUROC "
+          f"{fmt(ds['auroc'], 4)}, AUPRC {fmt(ds['auprc'], 4)}, ECE {fmt(ds['ece'], 4)}, "
+          f"MCE {fmt(ds['mce'], 4)}.", ""]
 
     L += [f"## Proposal modes (Table II shape, {KIND_LABEL[t2kind]}, held out)", ""]
     rows = []
@@ -330,9 +331,9 @@ def _report(S, kinds, cv_kinds, t2kind, main_kind, cv_folds) -> str:
         rows.append([m] + [r[x]["classification"]["accuracy"] for x in METHODS]
                     + [r[x]["classification"]["auroc"] for x in METHODS]
                     + [r[x]["regression"]["r2"] for x in METHODS])
-    L.append(RP.markdown_table(["mode", "acc Score", "acc Box", "acc LMD", "AUROC Score",
-                                "AUROC Box", "AUROC LMD", "R² Score", "R² Box", "R² LMD"], rows,
-                               digits=4))
+    L.append(markdown_table(["mode", "acc Score", "acc Box", "acc LMD", "AUROC Score",
+                             "AUROC Box", "AUROC LMD", "R² Score", "R² Box", "R² LMD"], rows,
+                            digits=4))
     L += ["Mode `none` has no proposal features: its LMD set is the 17 own-box features.", ""]
 
     L += [f"## Grouped {cv_folds}-fold cross validation over the training sequences", "",
@@ -343,12 +344,12 @@ def _report(S, kinds, cv_kinds, t2kind, main_kind, cv_folds) -> str:
                  tuple(C[m]["classification"]["auroc"]), tuple(C[m]["classification"]["auprc"]),
                  tuple(C[m]["regression"]["r2"])] for m in METHODS]
         L += [f"**{KIND_LABEL[kind]}**", "",
-              RP.markdown_table(["method", "accuracy", "AUROC", "AUPRC", "R²"], rows, digits=4)]
+              markdown_table(["method", "accuracy", "AUROC", "AUPRC", "R²"], rows, digits=4)]
 
     L += ["## Calibration (held out, 10 equal-width bins)", ""]
-    L.append(RP.markdown_table(["confidence", "ECE", "MCE"],
-                               [[k, v["ece"], v["mce"]] for k, v in S["calibration"].items()],
-                               digits=4))
+    L.append(markdown_table(["confidence", "ECE", "MCE"],
+                            [[k, v["ece"], v["mce"]] for k, v in S["calibration"].items()],
+                            digits=4))
     P = S["pngs"]
     L += [f"![reliability]({P['reliability']})", "",
           f"![reliability by feature set]({P['reliability_baselines']})", "",
@@ -359,14 +360,14 @@ def _report(S, kinds, cv_kinds, t2kind, main_kind, cv_folds) -> str:
         for task, g in S["greedy"].items():
             L += [f"**{task}** ({KIND_LABEL[g['kind']]}, grouped {g['folds']}-fold CV {g['metric']} "
                   f"on {g['rows']} training rows, {g['candidates']} candidate features; all of "
-                  f"them: {RP.fmt(g['all_features'], 4)})", ""]
-            L.append(RP.markdown_table(["step", "feature added", g["metric"]],
-                                       [[i + 1, n, s] for i, (n, s) in
-                                        enumerate(zip(g["selected"], g["scores"]))], digits=4))
+                  f"them: {fmt(g['all_features'], 4)})", ""]
+            L.append(markdown_table(["step", "feature added", g["metric"]],
+                                    [[i + 1, n, s] for i, (n, s) in
+                                     enumerate(zip(g["selected"], g["scores"]))], digits=4))
             L += [f"![greedy {task}]({P[f'greedy_{task}']})", ""]
     L += ["## Feature correlations with IoU_BEV (held out, Pearson)", ""]
     top = [c for c in S["correlations"] if c[1] is not None and np.isfinite(c[1])][:15]
-    L.append(RP.markdown_table(["feature", "r"], [[n, r] for n, r in top], digits=4))
+    L.append(markdown_table(["feature", "r"], [[n, r] for n, r in top], digits=4))
     L += [f"![correlations]({P['correlations']})", ""]
 
     R = S["annotation_review"]
@@ -384,8 +385,8 @@ def _report(S, kinds, cv_kinds, t2kind, main_kind, cv_folds) -> str:
         rows.append([name] + [d[rule][k] for rule in ("caused", "near") for k in ks])
     rows.append(["random (expected)"] + [R["expected_random_precision"][rule]
                                          for rule in ("caused", "near") for _ in ks])
-    L.append(RP.markdown_table(["ranking"] + [f"{rule} P@{k}" for rule in ("caused", "near")
-                                              for k in ks], rows, digits=2))
+    L.append(markdown_table(["ranking"] + [f"{rule} P@{k}" for rule in ("caused", "near")
+                                           for k in ks], rows, digits=2))
     L += ["Exports: `annotation_review/proposals_lmd_iou.csv|json`, "
           "`annotation_review/proposals_score.csv|json`; thumbnails in "
           "`annotation_review/thumbnails/`.", ""]
@@ -397,9 +398,9 @@ def _report(S, kinds, cv_kinds, t2kind, main_kind, cv_folds) -> str:
              a["detector_score_auroc"], a["ece_lmd"], a["ece_detector_score"], a["r2_lmd"],
              "yes" if a["lmd_auroc_above_score"] and a["lmd_auroc_above_box"]
              and a["ece_below_score"] else "no"] for m, a in S["acceptance"].items()]
-    L.append(RP.markdown_table(["mode", "AUROC LMD", "AUROC Box", "AUROC Score (model)",
-                                "AUROC detector score", "ECE LMD", "ECE detector score",
-                                "R² LMD", "met"], rows, digits=4))
+    L.append(markdown_table(["mode", "AUROC LMD", "AUROC Box", "AUROC Score (model)",
+                             "AUROC detector score", "ECE LMD", "ECE detector score",
+                             "R² LMD", "met"], rows, digits=4))
     L.append(f"\n_{S['seconds']:.0f} s._\n")
     return "\n".join(L)
 

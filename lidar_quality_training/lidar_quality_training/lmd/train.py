@@ -33,6 +33,7 @@ from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as M
 from lidar_quality_core.model_store import ModelStoreError
 
+from ..report import ModelCard, bullets, code_block, fmt, markdown_table
 from .dataset import (TP_IOU, LmdDataset, Progress, add_source_args, load_from_args,
                       settings_from_args)
 
@@ -171,37 +172,33 @@ def train(train_sets: dict, test_sets: dict | None, out: Path, *, kind: str = "x
     return results
 
 
-def _f(x, d=4):
-    return "–" if x is None or not np.isfinite(x) else f"{x:.{d}f}"
-
-
-def _source_lines(data: dict | None, label: str) -> list[str]:
-    """Card lines naming where ``label`` data came from (``_data``)."""
+def _source_items(data: dict | None, label: str) -> list[str]:
+    """Card bullets naming where ``label`` data came from (``_data``)."""
     if not data:
         return []
     out = []
     bags = [s["path"] for s in data["sources"] if s.get("kind") == "perception_bag"]
     if bags:
-        out.append(f"- {label} perception bags: {', '.join(f'`{b}`' for b in bags)}.")
+        out.append(f"{label} perception bags: {', '.join(f'`{b}`' for b in bags)}.")
     for s in data["sources"]:
         if s.get("kind") == "kitti":
             props = s.get("proposals")
-            out.append(f"- {label} KITTI object directory `{s['path']}` (split "
+            out.append(f"{label} KITTI object directory `{s['path']}` (split "
                        f"`{s.get('split')}`), detector results `{s.get('results')}`"
                        + (f", proposals `{props}`" if props else ", no proposals") + ".")
     return out
 
 
-def _origin_line(tr: dict) -> str:
+def _origin_item(tr: dict) -> str:
     data = tr.get("data") or {}
     if data.get("simulated"):
-        return ("- Detections, proposals and ground truth: simulated lidar sequences "
+        return ("Detections, proposals and ground truth: simulated lidar sequences "
                 "(`lidar_sim`) run through the reference perception (`reference_perception`), "
                 "stored as perception bags (`make meta-data`).")
     if any(s.get("kind") == "kitti" for s in data.get("sources", [])):
-        return ("- Ground truth: the KITTI directory's `label_2` (camera boxes converted with "
+        return ("Ground truth: the KITTI directory's `label_2` (camera boxes converted with "
                 "each frame's `calib`); detections and proposals: the result files named above.")
-    return ("- Detections, proposals and ground truth: the perception bags named above "
+    return ("Detections, proposals and ground truth: the perception bags named above "
             "(`/perception/detections`, `/perception/proposals`, `/lidar/gt_objects`).")
 
 
@@ -211,33 +208,32 @@ def model_card(results: dict, command: str) -> str:
     tr = any_mode["training"]
     held = tr.get("held_out")
     s = tr.get("settings") or {}
-    lines = [
-        "# LMD meta models (LidarMetaDetect)", "",
+    card = ModelCard("LMD meta models (LidarMetaDetect)", [
         "Meta classifier (confidence that a detection is a true positive, IoU_BEV >= 0.5 with "
         "a ground-truth box) and meta regressor (predicted IoU_BEV) of `lmd_node`, one pair per "
         "proposal mode (`lmd_<mode>_classifier.joblib`, `lmd_<mode>_regressor.joblib`, each with "
-        "a manifest: feature schema, SHA-256, training data, metrics).", "",
-        "## Reproduce", "", "```bash", command, "```", "",
+        "a manifest: feature schema, SHA-256, training data, metrics)."])
+    card.section(
+        "Reproduce", code_block(command),
         "(`lmd-train` is `python -m lidar_quality_training.lmd.train`; in the repository: "
-        "`make lmd-models`.)", "",
+        "`make lmd-models`.)",
         f"Estimator: `{tr['kind']}` (lidar_quality_core.meta_model), seed {tr['seed']}, "
-        "single-threaded.", "",
-        "## Data", "",
-        f"- Training: {tr['frames']} frames, {tr['boxes']} boxes ({tr['tp']} TP, rate "
-        f"{_f(tr['tp_rate'], 3)}) from {tr['groups']} sequences: "
-        f"{', '.join(map(str, tr['sources']))}.",
-    ]
-    lines += _source_lines(tr.get("data"), "Training")
+        "single-threaded.")
+    data = [f"Training: {tr['frames']} frames, {tr['boxes']} boxes ({tr['tp']} TP, rate "
+            f"{fmt(tr['tp_rate'], 3)}) from {tr['groups']} sequences: "
+            f"{', '.join(map(str, tr['sources']))}.",
+            *_source_items(tr.get("data"), "Training")]
     if held:
-        lines.append(f"- Held out: {held['frames']} frames, {held['boxes']} boxes ({held['tp']} "
-                     f"TP, rate {_f(held['tp_rate'], 3)}) from {held['groups']} sequences: "
-                     f"{', '.join(map(str, held['sources']))}.")
-        lines += _source_lines(held.get("data"), "Held-out")
-    lines += [
-        _origin_line(tr),
-        f"- Target: {tr['target']} (class-agnostic, as the authors' code); TP iff "
-        f"{tr['tp_rule']}.", "",
-        "## Features", "",
+        data += [f"Held out: {held['frames']} frames, {held['boxes']} boxes ({held['tp']} "
+                 f"TP, rate {fmt(held['tp_rate'], 3)}) from {held['groups']} sequences: "
+                 f"{', '.join(map(str, held['sources']))}.",
+                 *_source_items(held.get("data"), "Held-out")]
+    data += [_origin_item(tr),
+             f"Target: {tr['target']} (class-agnostic, as the authors' code); TP iff "
+             f"{tr['tp_rule']}."]
+    card.section("Data", bullets(data))
+    card.section(
+        "Features",
         "`lidar_quality_core.lmd.features` (the paper's set): 17 own-box quantities (x, y, z, l, w, h, "
         "theta, score, class, volume, surface, size ratio, points in box, fraction of the cloud's "
         "points, reflectance max / mean / std); for `exact` and `threshold` also min / max / "
@@ -248,7 +244,7 @@ def model_card(results: dict, command: str) -> str:
         f"proposal-set BEV IoU > {s.get('iou_threshold')}, proposal score > "
         f"{s.get('proposal_score_threshold')} (threshold mode); NMS IoU "
         f"{s.get('nms_iou_threshold')}, NMS score >= {s.get('nms_score_threshold')} "
-        f"(exact mode); classes {', '.join(s.get('class_names', []))}.", "",
+        f"(exact mode); classes {', '.join(s.get('class_names', []))}.",
         "IoU statistics are ours, not the authors': min / max / mean / std of IoU_3D and "
         "IoU_BEV over the proposal set without the box itself. The authors keep the box's "
         "match with itself in each list as a 0, which makes min always 0 and pulls mean and "
@@ -256,35 +252,33 @@ def model_card(results: dict, command: str) -> str:
         "describe the other proposals only. Following the authors would change every box "
         "with another proposal and need the models retrained. A proposal is the box itself "
         "only with its geometry and its score; the features do not depend on the order of "
-        "the proposals (`lidar_quality_core.lmd.features`).", "",
-        "## Metrics", "",
-        (f"Grouped {tr['cv_folds']}-fold cross validation over the training sequences "
-         "(mean ± std over folds)" if tr["cv_folds"] else
-         "No cross validation (`--cv-folds 0`): the CV columns are empty")
-        + (" and held-out sequences." if held else "; no held-out data.")
-        + " ECE / MCE: 10 equal-width bins.", "",
-        "| mode | features | CV AUROC | CV R² | held-out accuracy | held-out AUROC | "
-        "held-out AUPRC | held-out ECE | held-out MCE | held-out R² | held-out MAE | "
-        "detector score AUROC | detector score ECE | size kB |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
-    ]
+        "the proposals (`lidar_quality_core.lmd.features`).")
+    rows = []
     for mode, r in results.items():
         c, g = r["classifier"], r["regressor"]
         h, hs, hr = c.get("held_out", {}), c.get("held_out_detector_score", {}), g.get(
             "held_out", {})
-        cv_auroc = (f"{_f(c['cv']['auroc'][0])} ± {_f(c['cv']['auroc'][1])}" if "cv" in c
-                    else "–")
-        cv_r2 = f"{_f(g['cv']['r2'][0])} ± {_f(g['cv']['r2'][1])}" if "cv" in g else "–"
-        lines.append(
-            f"| {mode} | {r['n_features']} | {cv_auroc} "
-            f"| {cv_r2} | {_f(h.get('accuracy'))} | "
-            f"{_f(h.get('auroc'))} | {_f(h.get('auprc'))} | {_f(h.get('ece'))} | "
-            f"{_f(h.get('mce'))} | {_f(hr.get('r2'))} | {_f(hr.get('mae'))} | "
-            f"{_f(hs.get('auroc'))} | {_f(hs.get('ece'))} | {r['bytes'] / 1e3:.0f} |")
-    lines += ["", "The full evaluation (score and box-feature baselines, other estimators, "
-              "reliability diagrams, feature selection, annotation-error proposals) is "
-              "`lmd-eval`'s report.", ""]
-    return "\n".join(lines)
+        rows.append([mode, r["n_features"],
+                     tuple(c["cv"]["auroc"]) if "cv" in c else None,
+                     tuple(g["cv"]["r2"]) if "cv" in g else None,
+                     h.get("accuracy"), h.get("auroc"), h.get("auprc"), h.get("ece"),
+                     h.get("mce"), hr.get("r2"), hr.get("mae"), hs.get("auroc"), hs.get("ece"),
+                     f"{r['bytes'] / 1e3:.0f}"])
+    card.section(
+        "Metrics",
+        (f"Grouped {tr['cv_folds']}-fold cross validation over the training sequences "
+         "(mean ± std over folds)" if tr["cv_folds"] else
+         "No cross validation (`--cv-folds 0`): the CV columns are empty")
+        + (" and held-out sequences." if held else "; no held-out data.")
+        + " ECE / MCE: 10 equal-width bins.",
+        markdown_table(["mode", "features", "CV AUROC", "CV R²", "held-out accuracy",
+                        "held-out AUROC", "held-out AUPRC", "held-out ECE", "held-out MCE",
+                        "held-out R²", "held-out MAE", "detector score AUROC",
+                        "detector score ECE", "size kB"], rows, digits=4),
+        "The full evaluation (score and box-feature baselines, other estimators, "
+        "reliability diagrams, feature selection, annotation-error proposals) is "
+        "`lmd-eval`'s report.")
+    return card.render()
 
 
 def main(argv=None) -> int:

@@ -47,6 +47,7 @@ from lidar_quality_core.jsonable import jsonable
 from lidar_quality_core import report_plots as rp
 from lidar_quality_core.progress import Progress
 
+from ..report import Section, markdown_table, update_card
 from .dataset import SegmentDataset, discover_sources, load_frame
 from .train import (FEATURE_SETS, PREFIX, add_data_arguments, cross_validate_pair,
                     data_summary, dataset_from_args, feature_set, fit_pair, settings_from_args,
@@ -251,38 +252,34 @@ def figure1(path, source, index: int, models_dir, settings, *, ignore_label=0,
 # -- report ----------------------------------------------------------------------------
 
 
-def update_model_card(path: Path, res: dict) -> None:
-    """Put the held-out table of ``res`` into the model card at ``path`` (section
-    "Held-out evaluation", replaced if present)."""
-    h, te = res["heldout"], res["test_data"]
-    lines = ["## Held-out evaluation", "",
-             f"`{res['command']}`: {te['n_segments']} segments of {te['n_frames']} frames of "
-             f"{te['n_sequences']} sequences never used in training (true-positive rate "
-             f"{_p(te['true_positive_rate'])}). Baselines fitted on the same training data.", "",
-             "| | ACC | AUROC | AUPRC (false positives) | ECE | MCE | R² | MAE |",
-             "|---|---|---|---|---|---|---|---|"]
+def _heldout_table(h: dict, auprc: str = "AUPRC") -> str:
+    """Held-out ACC ... MAE of each feature set and the naive baseline."""
+    rows = []
     for s in FEATURE_SETS:
         c, r = h[s]["classification"], h[s]["regression"]
-        lines.append(f"| {SET_LABELS[s]} | {_p(c['accuracy'])} | {_p(c['auroc'])} | "
-                     f"{_p(c['auprc_fp'])} | {c['ece']:.3f} | {c['mce']:.3f} | "
-                     f"{_p(r['r2'])} | {r['mae']:.3f} |")
-    lines.append(f"| naive baseline | {_p(h['naive_accuracy'])} | | | | | | |")
+        rows.append([SET_LABELS[s], _p(c["accuracy"]), _p(c["auroc"]), _p(c["auprc_fp"]),
+                     c["ece"], c["mce"], _p(r["r2"]), r["mae"]])
+    rows.append(["naive baseline", _p(h["naive_accuracy"])] + [""] * 6)
+    return markdown_table(["", "ACC", "AUROC", auprc, "ECE", "MCE", "R²", "MAE"], rows)
+
+
+def update_model_card(path: Path, res: dict) -> None:
+    """Put the held-out table of ``res`` into the model card at ``path`` (section
+    "Held-out evaluation", replaced if present, else before "Limits")."""
+    h, te = res["heldout"], res["test_data"]
+    sec = Section("Held-out evaluation", [
+        f"`{res['command']}`: {te['n_segments']} segments of {te['n_frames']} frames of "
+        f"{te['n_sequences']} sequences never used in training (true-positive rate "
+        f"{_p(te['true_positive_rate'])}). Baselines fitted on the same training data.",
+        _heldout_table(h, "AUPRC (false positives)")])
     o = res.get("heldout_other_rows")
     if o:
         c, r = o["classification"], o["regression"]
         how = ("the vertical field of view (segmentation cloud alone, no ring field)"
                if o["ring_from"] == "segmentation" else "the ring field")
-        lines += ["", f"With image rows from {how} instead: ACC {_p(c['accuracy'])}, "
-                  f"AUROC {_p(c['auroc'])}, R² {_p(r['r2'])}."]
-    text = path.read_text() if path.is_file() else ""
-    start = text.find("## Held-out evaluation")
-    if start >= 0:
-        nxt = text.find("\n## ", start + 1)
-        text = text[:start] + (text[nxt + 1:] if nxt >= 0 else "")
-    at = text.find("## Limits")
-    block = "\n".join(lines) + "\n\n"
-    text = text[:at] + block + text[at:] if at >= 0 else text.rstrip("\n") + "\n\n" + block
-    path.write_text(text)
+        sec.add(f"With image rows from {how} instead: ACC {_p(c['accuracy'])}, "
+                f"AUROC {_p(c['auroc'])}, R² {_p(r['r2'])}.")
+    update_card(path, sec, before="Limits")
 
 
 def _pct(ms) -> str:
@@ -315,28 +312,20 @@ def write_report(out: Path, res: dict) -> Path:
           "positives (IoU_adj = 0) as the positive class, as the paper.", ""]
     t1 = res["table1"]
     L += [f"## Table I: grouped {res['folds']}-fold cross validation on the training data "
-          f"({res['kind']})", "",
-          "| | | training | validation |", "|---|---|---|---|"]
-    rows = (("ACC", "classification", "accuracy"), ("AUROC", "classification", "auroc"),
-            ("AUPRC", "classification", "auprc_fp"), ("R²", "regression", "r2"))
-    for lab, task, key in rows:
-        for s in FEATURE_SETS:
-            d = t1[s][task]
-            L.append(f"| {lab} | {SET_LABELS[s]} | {_pct(d['train'][key])} | "
-                     f"{_pct(d['val'][key])} |")
+          f"({res['kind']})", ""]
+    rows = []
+    for lab, task, key in (("ACC", "classification", "accuracy"),
+                           ("AUROC", "classification", "auroc"),
+                           ("AUPRC", "classification", "auprc_fp"), ("R²", "regression", "r2")):
+        rows += [[lab, SET_LABELS[s], _pct(t1[s][task]["train"][key]),
+                  _pct(t1[s][task]["val"][key])] for s in FEATURE_SETS]
         if key == "accuracy":
-            L.append(f"| ACC | naive baseline | {_p(t1['naive_accuracy'])} | |")
+            rows.append(["ACC", "naive baseline", _p(t1["naive_accuracy"]), ""])
+    L.append(markdown_table(["", "", "training", "validation"], rows).rstrip())
     if "heldout" in res:
         h = res["heldout"]
         L += ["", "## Held-out sequences (trained on all training data; LMS = the shipped "
-              "models)", "",
-              "| | ACC | AUROC | AUPRC | ECE | MCE | R² | MAE |", "|---|---|---|---|---|---|---|---|"]
-        for s in FEATURE_SETS:
-            c, r = h[s]["classification"], h[s]["regression"]
-            L.append(f"| {SET_LABELS[s]} | {_p(c['accuracy'])} | {_p(c['auroc'])} | "
-                     f"{_p(c['auprc_fp'])} | {c['ece']:.3f} | {c['mce']:.3f} | {_p(r['r2'])} | "
-                     f"{r['mae']:.3f} |")
-        L.append(f"| naive baseline | {_p(h['naive_accuracy'])} | | | | | | |")
+              "models)", "", _heldout_table(h).rstrip()]
         o = res.get("heldout_other_rows")
         if o:
             c, r = o["classification"], o["regression"]
@@ -353,10 +342,9 @@ def write_report(out: Path, res: dict) -> Path:
                   f"{acc['auroc_baselines']}, R² {acc['r2']:.4f} vs {acc['r2_baselines']})."]
         if h.get("by_class"):
             L += ["", "LMS held-out by predicted class:", "",
-                  "| class | segments | TP rate | AUROC | R² | MAE |", "|---|---|---|---|---|---|"]
-            for b in h["by_class"]:
-                L.append(f"| {b['class']} | {b['n']} | {_p(b['tp_rate'])} | {_p(b['auroc'])} | "
-                         f"{_p(b['r2'])} | {b['mae']:.3f} |")
+                  markdown_table(["class", "segments", "TP rate", "AUROC", "R²", "MAE"],
+                                 [[b["class"], b["n"], _p(b["tp_rate"]), _p(b["auroc"]),
+                                   _p(b["r2"]), b["mae"]] for b in h["by_class"]]).rstrip()]
     if "greedy" in res:
         g = res["greedy"]
         g0 = g["classification"]
@@ -371,22 +359,19 @@ def write_report(out: Path, res: dict) -> Path:
         for task, crit in (("classification", "AUROC"), ("regression", "R²")):
             d = g[task]
             k = len(d["selected"])
-            L.append("| " + " | ".join([task, *map(str, range(1, k + 1)), "all"]) + " |")
-            L.append("|---" * (k + 2) + "|")
-            L.append("| added | " + " | ".join(f"`{n}`" for n in d["selected"]) + " | all |")
-            L.append(f"| {crit} ({d['kind']}) | " + " | ".join(_p(v) for v in d["scores"])
-                     + f" | {_p(d['all_features_score'])} |")
+            rows = [["added", *(f"`{n}`" for n in d["selected"]), "all"],
+                    [f"{crit} ({d['kind']})", *map(_p, d["scores"]),
+                     _p(d["all_features_score"])]]
             if d["rescore"]:
                 key = "auroc" if task == "classification" else "r2"
                 allv = res["table1"]["lms"][task]["val"][key][0]
-                L.append(f"| {crit} ({d['rescore_kind']}) | "
-                         + " | ".join(_p(v[key]) for v in d["rescore"]) + f" | {_p(allv)} |")
+                rows.append([f"{crit} ({d['rescore_kind']})",
+                             *(_p(v[key]) for v in d["rescore"]), _p(allv)])
                 if task == "classification":
                     alla = res["table1"]["lms"][task]["val"]["accuracy"][0]
-                    L.append(f"| ACC ({d['rescore_kind']}) | "
-                             + " | ".join(_p(v["accuracy"]) for v in d["rescore"])
-                             + f" | {_p(alla)} |")
-            L.append("")
+                    rows.append([f"ACC ({d['rescore_kind']})",
+                                 *(_p(v["accuracy"]) for v in d["rescore"]), _p(alla)])
+            L.append(markdown_table([task, *map(str, range(1, k + 1)), "all"], rows))
     L += ["## Figures", ""]
     for name, cap in res["figures"].items():
         L += [f"![{cap}]({name})", "", f"*{cap}*", ""]

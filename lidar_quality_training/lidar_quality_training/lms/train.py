@@ -41,6 +41,7 @@ from lidar_quality_core import metrics as qm
 from lidar_quality_core.model_store import ModelStoreError
 from lidar_quality_core.progress import Progress
 
+from ..report import ModelCard, bullets, markdown_table
 from .dataset import DEFAULT_BLOCK_FRAMES, RING_FROM, SegmentDataset, build_dataset
 
 __all__ = ["FEATURE_MEASURE_PATTERN", "FEATURE_SETS", "feature_set", "cross_validate_pair",
@@ -163,7 +164,7 @@ def _data(paths) -> dict:
             and meta_model.simulated_sources([s["path"] for s in src])}
 
 
-def _source_lines(data: dict | None) -> list[str]:
+def _source_items(data: dict | None) -> list[str]:
     if not data:
         return []
     out = []
@@ -171,64 +172,61 @@ def _source_lines(data: dict | None) -> list[str]:
                         ("semantickitti", "SemanticKITTI-style sequences")):
         paths = [s["path"] for s in data["sources"] if s["kind"] == kind]
         if paths:
-            out.append(f"- {label}: {', '.join(f'`{p}`' for p in paths)}.")
+            out.append(f"{label}: {', '.join(f'`{p}`' for p in paths)}.")
     return out
 
 
 def _model_card(path: Path, data: dict, cv: dict | None, kind: str, command: str,
                 sizes: dict[str, int], n_features: int) -> None:
-    lines = ["# LidarMetaSeg meta models (`lms_classifier.joblib`, `lms_regressor.joblib`)", "",
-             "Used by `lms_node` (via `lms_ros.pipeline.default_model_paths`): per predicted "
-             "segment of a segmentation cloud, the classifier gives `confidence` = P(IoU_adj > 0) "
-             "(the segment is not a false positive) and the regressor `predicted_iou` = "
-             "estimated IoU_adj, both from the segment's "
-             f"{n_features} LidarMetaSeg metrics (`LmsSettings.metric_names()`, order fixed "
-             "by the manifests).", "",
-             "## How they were made", "",
-             f"- Command: `{command}`",
-             f"- Estimator: `{kind}` (`lidar_quality_core.meta_model.make_estimator`, seed 0, "
-             "one thread; deterministic).",
-             f"- Data: {data['n_sequences']} sequences, {data['n_frames']} frames, "
-             f"{data['n_segments']} segments with SP >= "
-             f"{(data.get('settings') or {}).get('min_segment_points', '?')} points "
-             f"({data['excluded_small_segments']} smaller ones excluded, "
-             f"{data['dropped_undefined_iou']} with undefined IoU dropped); "
-             f"true-positive rate {data['true_positive_rate']:.3f}, mean IoU_adj "
-             f"{data['mean_iou_adj']:.3f}.",
-             f"- Sequences: {', '.join(data['sequences'])}.",
-             *_source_lines(data.get("data")),
-             f"- Ground-truth label {data['ignore_label']} ignored in the targets; clouds "
-             f"decoded as the node does (rows from: {data['ring_from']}).",
-             "- Files: " + ", ".join(f"`{k}` {v / 1024:.0f} kB" for k, v in sizes.items()),
-             ""]
+    card = ModelCard(
+        "LidarMetaSeg meta models (`lms_classifier.joblib`, `lms_regressor.joblib`)",
+        ["Used by `lms_node` (via `lms_ros.pipeline.default_model_paths`): per predicted "
+         "segment of a segmentation cloud, the classifier gives `confidence` = P(IoU_adj > 0) "
+         "(the segment is not a false positive) and the regressor `predicted_iou` = "
+         "estimated IoU_adj, both from the segment's "
+         f"{n_features} LidarMetaSeg metrics (`LmsSettings.metric_names()`, order fixed "
+         "by the manifests)."])
+    made = card.section("How they were made", bullets([
+        f"Command: `{command}`",
+        f"Estimator: `{kind}` (`lidar_quality_core.meta_model.make_estimator`, seed 0, "
+        "one thread; deterministic).",
+        f"Data: {data['n_sequences']} sequences, {data['n_frames']} frames, "
+        f"{data['n_segments']} segments with SP >= "
+        f"{(data.get('settings') or {}).get('min_segment_points', '?')} points "
+        f"({data['excluded_small_segments']} smaller ones excluded, "
+        f"{data['dropped_undefined_iou']} with undefined IoU dropped); "
+        f"true-positive rate {data['true_positive_rate']:.3f}, mean IoU_adj "
+        f"{data['mean_iou_adj']:.3f}.",
+        f"Sequences: {', '.join(data['sequences'])}.",
+        *_source_items(data.get("data")),
+        f"Ground-truth label {data['ignore_label']} ignored in the targets; clouds "
+        f"decoded as the node does (rows from: {data['ring_from']}).",
+        "Files: " + ", ".join(f"`{k}` {v / 1024:.0f} kB" for k, v in sizes.items())]))
     if cv is None:
-        lines += ["No cross validation (`--cv-folds 0`).", ""]
+        made.add("No cross validation (`--cv-folds 0`).")
     else:
         c, r = cv["classification"], cv["regression"]
-
-        def ms(d, k):
-            return f"{d[k][0]:.3f} ± {d[k][1]:.3f}"
-
-        lines += [f"## Grouped {len(c['folds'])}-fold cross validation (sub-sequences of "
-                  f"{data['block_frames']} frames, {data['n_groups']} groups)", "",
-                  "| | training | validation |", "|---|---|---|"]
-        for k, lab in (("accuracy", "ACC"), ("auroc", "AUROC"),
-                       ("auprc_fp", "AUPRC (false positives)"), ("ece", "ECE")):
-            lines.append(f"| {lab} | {ms(c['train'], k)} | {ms(c['val'], k)} |")
-        for k, lab in (("r2", "R²"), ("mae", "MAE")):
-            lines.append(f"| {lab} (IoU_adj) | {ms(r['train'], k)} | {ms(r['val'], k)} |")
-        lines += ["", "Held-out results and the baselines: `lms-eval` (report.md)."]
+        rows = [[lab, tuple(c["train"][k]), tuple(c["val"][k])]
+                for k, lab in (("accuracy", "ACC"), ("auroc", "AUROC"),
+                               ("auprc_fp", "AUPRC (false positives)"), ("ece", "ECE"))]
+        rows += [[f"{lab} (IoU_adj)", tuple(r["train"][k]), tuple(r["val"][k])]
+                 for k, lab in (("r2", "R²"), ("mae", "MAE"))]
+        card.section(f"Grouped {len(c['folds'])}-fold cross validation (sub-sequences of "
+                     f"{data['block_frames']} frames, {data['n_groups']} groups)",
+                     markdown_table(["", "training", "validation"], rows),
+                     "Held-out results and the baselines: `lms-eval` (report.md).")
     trained_on = ("simulated HDL-64 scans segmented by the reference segmenter"
                   if (data.get("data") or {}).get("simulated") else
                   "the data named above, segmented by the network that wrote its "
                   "probabilities")
-    lines += ["", "## Limits", "",
-              f"Trained on {trained_on}: the metrics depend on that segmenter's probability "
-              "calibration and on the sensor layout (image size, rows from rings). Retrain for "
-              "another segmentation network or sensor; the node refuses a model trained for "
-              "another class list, image geometry or min_segment_points (manifest "
-              "`training_data.settings`).", ""]
-    path.write_text("\n".join(lines))
+    card.section(
+        "Limits",
+        f"Trained on {trained_on}: the metrics depend on that segmenter's probability "
+        "calibration and on the sensor layout (image size, rows from rings). Retrain for "
+        "another segmentation network or sensor; the node refuses a model trained for "
+        "another class list, image geometry or min_segment_points (manifest "
+        "`training_data.settings`).")
+    card.write(path)
 
 
 def train(ds: SegmentDataset, out, *, kind: str = "xgboost", n_folds: int = 10,

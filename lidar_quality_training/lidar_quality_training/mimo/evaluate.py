@@ -69,7 +69,8 @@ from lidar_quality_core.detection_eval import (KITTI_IOU_THRESHOLDS, Partition, 
 from lidar_quality_core.mimo import scoring_rules as sr
 from lidar_quality_core.mimo.calibration import Recalibration
 from .dataset import TP_IOU, MimoDataset, load_bags
-from .train import CARD_BEGIN, CARD_END, PREFIXES, add_data_arguments
+from ..report import fmt, markdown_table, update_card
+from .train import PREFIXES, add_data_arguments, heldout_section
 
 __all__ = ["METHODS", "KITTI_THRESHOLDS", "Detections", "meta_distribution",
            "method_detections", "annotate", "split_groups", "regression_gt", "uncertainty_metrics",
@@ -459,7 +460,7 @@ def _pick_frame(ds: MimoDataset, eval_frames: np.ndarray) -> int:
 
 # ------------------------------------------------------------------ report
 def _f(x, d=3):
-    return rp.fmt(x, d)
+    return fmt(x, d)
 
 
 def comparison_rows(res: dict, which: str = "recalibrated") -> list:
@@ -491,17 +492,17 @@ def write_report(out: Path, res: dict, figures: dict) -> Path:
              "FP_BG: BEV IoU <= 0.1 with every ground-truth box. KITTI columns: car / truck "
              "0.7, pedestrian / cyclist 0.5. mAP: R40, all frames.", "",
              "## Detection quality and partitions", "",
-             rp.markdown_table(["method", "mAP BEV@0.5", "mAP KITTI BEV", "mAP KITTI 3D", "TP",
-                                "FP_ML", "FP_BG", "ignored"],
-                               [[METHODS[k], 100 * r["map_bev50"], 100 * r["map_kitti_bev"],
-                                 100 * r["map_kitti_3d"], r["counts"]["TP"],
-                                 r["counts"]["FP_ML"], r["counts"]["FP_BG"],
-                                 r["counts"]["ignored"]] for k, r in m.items()]).rstrip(), "",
+             markdown_table(["method", "mAP BEV@0.5", "mAP KITTI BEV", "mAP KITTI 3D", "TP",
+                             "FP_ML", "FP_BG", "ignored"],
+                            [[METHODS[k], 100 * r["map_bev50"], 100 * r["map_kitti_bev"],
+                              100 * r["map_kitti_3d"], r["counts"]["TP"],
+                              r["counts"]["FP_ML"], r["counts"]["FP_BG"],
+                              r["counts"]["ignored"]] for k, r in m.items()]).rstrip(), "",
              "mAP in %. The meta model changes only the ranking score of the merged "
              "detections, so its partitions equal the merged ones up to duplicates.", "",
              "## Uncertainty (evaluation half, after per-class F1 thresholds and temperature "
              "scaling fitted on the recalibration half)", "",
-             rp.markdown_table(COMPARISON_HEADER, comparison_rows(res)).rstrip(), "",
+             markdown_table(COMPARISON_HEADER, comparison_rows(res)).rstrip(), "",
              "Lower is better everywhere. NLL cls / Brier: K + 1 classes (target: a TP its "
              "class, FP_ML and FP_BG the background, as the authors' code); NLL reg: Gaussian "
              "x, y, z, l, w, h (+ 0.01 variance) + von Mises yaw against the ground-truth "
@@ -515,26 +516,26 @@ def write_report(out: Path, res: dict, figures: dict) -> Path:
              + ".", "",
              "### Without recalibration (all detections of the evaluation half, raw "
              "distributions)", "",
-             rp.markdown_table(COMPARISON_HEADER, comparison_rows(res, "raw")).rstrip(), "",
+             markdown_table(COMPARISON_HEADER, comparison_rows(res, "raw")).rstrip(), "",
              "### Fitted recalibration (recalibration half)", "",
              "Per class: the F1-optimal threshold on the temperature-scaled score / the "
              "temperature T.", "",
-             rp.markdown_table(["method"] + [f"{c} thr / T" for c in
-                                             res["methods"]["single"]["ap_bev50"]],
-                               [[METHODS[k]] + [f"{r['recalibration']['thresholds'][c]:.3f} / "
-                                                f"{r['recalibration']['temperatures'][c]:.2f}"
-                                                for c in r["ap_bev50"]]
-                                for k, r in m.items()]).rstrip(), ""]
+             markdown_table(["method"] + [f"{c} thr / T" for c in
+                                          res["methods"]["single"]["ap_bev50"]],
+                            [[METHODS[k]] + [f"{r['recalibration']['thresholds'][c]:.3f} / "
+                                             f"{r['recalibration']['temperatures'][c]:.2f}"
+                                             for c in r["ap_bev50"]]
+                             for k, r in m.items()]).rstrip(), ""]
     q = res["meta_quality"]
     label = QUALITY_LABELS
     lines += ["## Meta model vs merged score (all merged test detections)", "",
               "Target: BEV IoU >= 0.5 with a ground-truth box of the detection's class "
               "(ignored boxes included); IoU: the predicted IoU (merged score for the first "
               "row).", "",
-              rp.markdown_table(["confidence", "AUROC", "AUPRC", "ECE", "Brier", "IoU R²",
-                                 "IoU MAE"],
-                                [[label[k], v["auroc"], v["auprc"], v["ece"], v["brier"],
-                                  v["iou_r2"], v["iou_mae"]] for k, v in q.items()]).rstrip(),
+              markdown_table(["confidence", "AUROC", "AUPRC", "ECE", "Brier", "IoU R²",
+                              "IoU MAE"],
+                             [[label[k], v["auroc"], v["auprc"], v["ece"], v["brier"],
+                               v["iou_r2"], v["iou_mae"]] for k, v in q.items()]).rstrip(),
               ""]
     a = res["acceptance"]
     if a.get("checked"):
@@ -554,26 +555,21 @@ def write_report(out: Path, res: dict, figures: dict) -> Path:
 
 
 def update_model_card(card: Path, res: dict, command: str) -> None:
-    """Replace the held-out section of ``MODEL_CARD.md`` (between the mimo-eval markers)."""
-    text = card.read_text()
-    if CARD_BEGIN not in text or CARD_END not in text:
-        raise SystemExit(f"{card}: no {CARD_BEGIN} .. {CARD_END} section")
+    """Replace the held-out section of ``MODEL_CARD.md`` (added if the card has none)."""
     q = res["meta_quality"]
     m = res["methods"]
-    body = [CARD_BEGIN,
-            f"Held-out sequences {', '.join(sorted(res['recal_groups'] + res['eval_groups']))} "
-            f"(`{command}`):", "",
-            rp.markdown_table(["confidence", "AUROC", "ECE", "IoU R²", "IoU MAE"],
-                              [[QUALITY_LABELS[k], v["auroc"], v["ece"], v["iou_r2"],
-                                v["iou_mae"]] for k, v in q.items()]).rstrip(), "",
-            rp.markdown_table(["method", "mAP BEV@0.5 [%]", "MCE cls", "CE reg", "score ECE"],
-                              [[METHODS[k], 100 * r["map_bev50"], r["recalibrated"]["mce_cls"],
-                                r["recalibrated"]["ce_reg"], r["recalibrated"]["score_ece"]]
-                               for k, r in m.items()]).rstrip(), "",
-            "(calibration metrics after the paper's recalibration; full report: "
-            "`report.md` of mimo-eval)", CARD_END]
-    a, b = text.index(CARD_BEGIN), text.index(CARD_END) + len(CARD_END)
-    card.write_text(text[:a] + "\n".join(body) + text[b:])
+    update_card(card, heldout_section(
+        f"Held-out sequences {', '.join(sorted(res['recal_groups'] + res['eval_groups']))} "
+        f"(`{command}`):",
+        markdown_table(["confidence", "AUROC", "ECE", "IoU R²", "IoU MAE"],
+                       [[QUALITY_LABELS[k], v["auroc"], v["ece"], v["iou_r2"],
+                         v["iou_mae"]] for k, v in q.items()]),
+        markdown_table(["method", "mAP BEV@0.5 [%]", "MCE cls", "CE reg", "score ECE"],
+                       [[METHODS[k], 100 * r["map_bev50"], r["recalibrated"]["mce_cls"],
+                         r["recalibrated"]["ce_reg"], r["recalibrated"]["score_ece"]]
+                        for k, r in m.items()]),
+        "(calibration metrics after the paper's recalibration; full report: "
+        "`report.md` of mimo-eval)"))
 
 
 def run(data, models_dir, out, *, cache_dir=None, docs=None, model_card=None,
@@ -644,11 +640,11 @@ def main(argv=None) -> int:
     res = run(a.data, a.models, a.out, cache_dir=a.cache or None, docs=a.docs or None,
               model_card=a.model_card or None, es_samples=a.es_samples, seed=a.seed,
               heading_aware=a.heading_aware, quiet=a.quiet, command=command)
-    print(rp.markdown_table(["method", "mAP BEV@0.5 [%]", "TP", "FP_ML", "FP_BG"],
+    print(markdown_table(["method", "mAP BEV@0.5 [%]", "TP", "FP_ML", "FP_BG"],
                             [[METHODS[k], 100 * r["map_bev50"], r["counts"]["TP"],
                               r["counts"]["FP_ML"], r["counts"]["FP_BG"]]
                              for k, r in res["methods"].items()]))
-    print(rp.markdown_table(COMPARISON_HEADER, comparison_rows(res)))
+    print(markdown_table(COMPARISON_HEADER, comparison_rows(res)))
     a_ = res["acceptance"]
     if a_.get("checked"):
         print(f"merged + meta vs single head: MCE {a_['mce_cls_meta']:.4f} vs "

@@ -32,9 +32,11 @@ from lidar_quality_core import metrics as qm
 from lidar_quality_core.model_store import ModelStoreError
 from lidar_quality_core.progress import Progress
 
+from ..report import ModelCard, Section, code_block, markdown_table
 from .dataset import TP_IOU, MimoDataset, load_bags
 
-__all__ = ["PREFIXES", "train_pair", "train", "model_card", "main", "CARD_BEGIN", "CARD_END"]
+__all__ = ["PREFIXES", "train_pair", "train", "model_card", "heldout_section", "main",
+           "CARD_BEGIN", "CARD_END"]
 
 PREFIXES = {False: "mimo", True: "mimo_points"}
 CARD_BEGIN, CARD_END = "<!-- mimo-eval:begin -->", "<!-- mimo-eval:end -->"
@@ -127,8 +129,6 @@ def _fmt_ms(d: dict | None, key: str) -> str:
 
 def model_card(summary: dict, command: str = "") -> str:
     """``MODEL_CARD.md`` of the trained pairs (the held-out section is mimo-eval's)."""
-    from lidar_quality_core.report_plots import markdown_table
-
     from mimo_ros.pipeline import POINT_FEATURES, STAT_FEATURES
 
     d = summary["data"]
@@ -149,70 +149,55 @@ def model_card(summary: dict, command: str = "") -> str:
     else:
         data_line = f"Perception bags with {summary.get('heads')} detector heads: {bags}."
         trained_on = "the perception bags named above (their detector heads and scenes)"
-    lines = [
-        "# LiDAR-MIMO meta models (`models/mimo`)",
-        "",
+    card = ModelCard("LiDAR-MIMO meta models (`models/mimo`)", [
         "Meta classifier (confidence = P(the merged detection is a true positive)) and meta "
         "regressor (predicted BEV IoU with the best ground-truth box of its class) of "
         "`mimo_node`, over the merged clusters of the reference multi-head detector "
         "(`mimo_ros.pipeline`: consensus DBSCAN on 1 - BEV IoU, mean merge, SE / AE / MI, "
         "ETV / ATV and per-parameter variances, merged score, class, range).",
-        "",
-        "| files | features | used when |",
-        "|---|---|---|",
-        f"| `mimo_classifier.joblib`, `mimo_regressor.joblib` (+ `.manifest.json`) | the "
-        f"{len(STAT_FEATURES)} cluster statistics | default (`use_points: false`) |",
-        f"| `mimo_points_classifier.joblib`, `mimo_points_regressor.joblib` (+ manifests) | "
-        f"the same + {len(POINT_FEATURES)} LMD own-box point features of the merged box | "
-        "`use_points: true` |",
-        "",
-        "## Training data",
-        "",
-        data_line,
-        "",
+        markdown_table(["files", "features", "used when"], [
+            ["`mimo_classifier.joblib`, `mimo_regressor.joblib` (+ `.manifest.json`)",
+             f"the {len(STAT_FEATURES)} cluster statistics", "default (`use_points: false`)"],
+            ["`mimo_points_classifier.joblib`, `mimo_points_regressor.joblib` (+ manifests)",
+             f"the same + {len(POINT_FEATURES)} LMD own-box point features of the merged box",
+             "`use_points: true`"]])])
+    card.section(
+        "Training data", data_line,
         f"{d['groups']} sequences, {d['frames']} frames, "
         f"{d['merged']} merged detections of which {d['merged_tp']} are TPs "
         f"(BEV IoU >= {TP_IOU} with a ground-truth box of their class), {d['gt_boxes']} "
-        "ground-truth boxes. Sources and settings are in the manifests (`training_data`).",
-        "",
-        "## Models",
-        "",
+        "ground-truth boxes. Sources and settings are in the manifests (`training_data`).")
+    card.section(
+        "Models",
         "XGBoost (`lidar_quality_core.meta_model`, kind `xgboost`: 300 trees, depth 4, "
         "learning rate 0.05), fitted on all training sequences. Missing values (e.g. point "
         "features without a cloud) go the learnt default way.",
-        "",
         (f"Grouped cross validation over the sequences ({folds} folds, mean ± std of the "
          "validation folds):" if folds else
          "No cross validation (`--cv-folds 0`): the table is empty."),
-        "",
         markdown_table(["pair", "features", "AUROC", "ECE", "AUPRC", "IoU R²", "IoU MAE"],
-                       rows).rstrip(),
-        "",
+                       rows),
         f"For reference, the merged score itself on the training data: AUROC "
-        f"{base['auroc']:.3f}, ECE {base['ece']:.3f}, as IoU predictor R² {base['iou_r2']:.3f}.",
-        "",
-        "## Limits",
-        "",
+        f"{base['auroc']:.3f}, ECE {base['ece']:.3f}, as IoU predictor R² {base['iou_r2']:.3f}.")
+    card.section(
+        "Limits",
         f"Trained on {trained_on} only: another detector, sensor or scene distribution needs "
         "retraining (`mimo-train` on its own perception bags). The confidence is calibrated "
         "for the merge settings in the manifests (`training_data.merge_settings`); the node "
         "refuses another class list or `use_points` and warns about other merge settings, "
-        "which change the clusters.",
-        "",
-        "## Reproduce",
-        "",
-        "```bash",
-        command or "mimo-train --data data/perception/meta_train --out models/mimo",
-        "```",
-        "",
-        "## Held-out evaluation",
-        "",
-        CARD_BEGIN,
-        "Not evaluated yet: run `mimo-eval ... --model-card models/mimo/MODEL_CARD.md`.",
-        CARD_END,
-        "",
-    ]
-    return "\n".join(lines)
+        "which change the clusters.")
+    card.section("Reproduce", code_block(
+        command or "mimo-train --data data/perception/meta_train --out models/mimo"))
+    card.sections.append(heldout_section(
+        "Not evaluated yet: run `mimo-eval ... --model-card models/mimo/MODEL_CARD.md`."))
+    return card.render()
+
+
+def heldout_section(*blocks: str) -> Section:
+    """The card's "Held-out evaluation" section (``mimo-eval --model-card`` replaces it),
+    its text between the mimo-eval markers."""
+    body = "\n\n".join(b.strip("\n") for b in blocks)
+    return Section("Held-out evaluation", [f"{CARD_BEGIN}\n{body}\n{CARD_END}"])
 
 
 def add_data_arguments(p: argparse.ArgumentParser, default_data: str) -> None:
