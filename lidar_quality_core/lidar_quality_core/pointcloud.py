@@ -14,6 +14,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from lidar_quality_core.frame import FrameRejected
+
 __all__ = [
     "CloudFormatError",
     "INT8", "UINT8", "INT16", "UINT16", "INT32", "UINT32", "FLOAT32", "FLOAT64",
@@ -52,8 +54,12 @@ _KIND_SIZE_TO_DATATYPE = {(dt.kind, dt.itemsize): code for code, dt in DATATYPE_
 _NATIVE_BIG = sys.byteorder == "big"
 
 
-class CloudFormatError(ValueError):
-    """A PointCloud2 layout or a numpy array that cannot be converted."""
+class CloudFormatError(FrameRejected):
+    """A PointCloud2 layout or a numpy array that cannot be converted (a frame with such a
+    cloud is dropped as ``malformed_cloud``)."""
+
+    reason = "malformed_cloud"
+    cause = "cloud"
 
 
 def pointfield_datatype(dtype) -> int:

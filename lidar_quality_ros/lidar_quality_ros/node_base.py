@@ -1,30 +1,94 @@
-"""Common shell of the suite's nodes: diagnostics, synchronisation parameters, warnings,
-the input watchdog, run-time parameter changes.
+"""Common shell of the suite's nodes: the frame contract (inputs matched, processed,
+published, dropped or warned about and counted), diagnostics, synchronisation parameters,
+warnings, the input watchdog, run-time parameter changes.
+
+A node declares its parameters, builds its processor, creates its outputs
+(:meth:`QualityNode.create_output`), subscribes (:meth:`QualityNode.start_inputs`) and
+implements :meth:`QualityNode.process`: matched messages -> the processor's outputs
+(``lidar_quality_core.frame``). The rest is here: timing, a ``FrameRejected`` frame
+dropped and counted (with a throttled warning), the frame's issues warned per cause,
+the messages published in order, the counts summed into ``/diagnostics``.
 
 Never silent: bad input is logged once per cause and period (one cause does not hide
 another) and shown in ``/diagnostics``; an input that never arrives, or stamps that
 never match, are named after ``input_timeout`` seconds with the fix (WARN, then ERROR
 after ``input_error_timeout``); another node of the same full name is reported. Every
 parameter is read-only (read at start) unless the node applies changes
-(:meth:`QualityNode.declare_live`), so ``ros2 param set`` is applied or refused, never
+(``live`` in :meth:`QualityNode.declare_settings`), so ``ros2 param set`` is applied or refused, never
 accepted and ignored.
 """
 from __future__ import annotations
 
 import threading
 import time
-from typing import Any, Callable
+from collections import Counter
+from dataclasses import dataclass
+from typing import Any, Callable, Sequence
 
 from diagnostic_msgs.msg import DiagnosticStatus
+from lidar_quality_core.frame import FrameRejected
 from lidar_quality_core.input_watchdog import InputWatchdog
+from lidar_quality_core.parameters import from_parameters, param, parameter_specs
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from .diagnostics import NodeDiagnostics
-from .params import check_value, declare
+from .params import check_value, declare_spec
+from .qos import output_qos
+from .synced_inputs import SyncedInputs
 
 _LEVEL = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR}
+
+
+@dataclass(frozen=True)
+class CommonParameters:
+    """Parameters every quality node declares (diagnostics and the input watchdog)."""
+
+    diagnostics_period: float = param(
+        1.0, "Seconds between /diagnostics publications (0 disables them).", min_value=0.0)
+    diagnostics_window: float = param(
+        10.0, "Seconds over which /diagnostics measures the fraction of lost frames.",
+        min_value=0.1)
+    drop_warn_fraction: float = param(
+        0.05, "Fraction of frames lost over diagnostics_window above which /diagnostics "
+        "reports WARN.", min_value=0.0, max_value=1.0)
+    drop_error_fraction: float = param(
+        0.25, "Fraction of frames lost over diagnostics_window above which /diagnostics "
+        "reports ERROR (>= drop_warn_fraction).", min_value=0.0, max_value=1.0)
+    input_timeout: float = param(
+        2.0, "Seconds without a matched input set, while inputs arrive, after which the node "
+        "logs which input is missing (or how far apart the stamps are) and /diagnostics "
+        "reports WARN.", min_value=0.1)
+    input_error_timeout: float = param(
+        10.0, "Seconds without a matched input set, while inputs arrive, after which "
+        "/diagnostics reports ERROR (>= input_timeout).", min_value=0.1)
+
+
+@dataclass(frozen=True)
+class SyncParameters:
+    """How a node matches its inputs (``SyncedInputs``)."""
+
+    sync_mode: str = param(
+        "exact", "How inputs are matched by header stamp: 'exact' (equal stamps) or "
+        "'approximate' (stamps within sync_slop).", choices=("exact", "approximate"))
+    sync_slop: float = param(
+        0.05, "Largest stamp spread [s] of a matched input set in approximate mode.",
+        min_value=0.0)
+    sync_queue_size: int = param(
+        10, "Messages kept per input while waiting for their match; older ones are dropped "
+        "and counted in /diagnostics.", min_value=1)
+    processing_queue_size: int = param(
+        2, "Matched frames waiting for processing; when the node falls behind, the oldest "
+        "waiting frame is dropped (counted as overrun in /diagnostics).", min_value=1)
+
+    def synced_inputs_kwargs(self) -> dict:
+        return dict(mode=self.sync_mode, slop_s=self.sync_slop, queue_size=self.sync_queue_size,
+                    processing_queue_size=self.processing_queue_size)
+
+
+#: every parameter the base class and the synchroniser declare, for tables and checks
+BASE_PARAMETERS = parameter_specs(CommonParameters) + parameter_specs(SyncParameters)
 
 
 class QualityNode(Node):
@@ -37,36 +101,18 @@ class QualityNode(Node):
         super().__init__(name, **kwargs)
         self._live: dict[str, tuple[Callable[[Any], None], dict]] = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)
-        period = declare(self, "diagnostics_period", 1.0,
-                         "Seconds between /diagnostics publications (0 disables them).",
-                         min_value=0.0)
-        window = declare(self, "diagnostics_window", 10.0,
-                         "Seconds over which /diagnostics measures the fraction of lost "
-                         "frames.", min_value=0.1)
-        drop_warn = declare(self, "drop_warn_fraction", 0.05,
-                            "Fraction of frames lost over diagnostics_window above which "
-                            "/diagnostics reports WARN.", min_value=0.0, max_value=1.0)
-        drop_error = declare(self, "drop_error_fraction", 0.25,
-                             "Fraction of frames lost over diagnostics_window above which "
-                             "/diagnostics reports ERROR (>= drop_warn_fraction).",
-                             min_value=0.0, max_value=1.0)
-        if drop_error < drop_warn:
-            raise ValueError(f"parameter 'drop_error_fraction' = {drop_error} is below "
-                             f"'drop_warn_fraction' = {drop_warn}")
-        self.input_timeout = declare(
-            self, "input_timeout", 2.0,
-            "Seconds without a matched input set, while inputs arrive, after which the node "
-            "logs which input is missing (or how far apart the stamps are) and /diagnostics "
-            "reports WARN.", min_value=0.1)
-        self.input_error_timeout = declare(
-            self, "input_error_timeout", 10.0,
-            "Seconds without a matched input set, while inputs arrive, after which "
-            "/diagnostics reports ERROR (>= input_timeout).", min_value=0.1)
-        if self.input_error_timeout < self.input_timeout:
-            raise ValueError(f"parameter 'input_error_timeout' = {self.input_error_timeout} "
-                             f"is below 'input_timeout' = {self.input_timeout}")
-        self.diag = NodeDiagnostics(self, period_s=period, window_s=window,
-                                    drop_warn=drop_warn, drop_error=drop_error)
+        c = self.declare_settings(CommonParameters)
+        if c.drop_error_fraction < c.drop_warn_fraction:
+            raise ValueError(f"parameter 'drop_error_fraction' = {c.drop_error_fraction} is "
+                             f"below 'drop_warn_fraction' = {c.drop_warn_fraction}")
+        if c.input_error_timeout < c.input_timeout:
+            raise ValueError(f"parameter 'input_error_timeout' = {c.input_error_timeout} "
+                             f"is below 'input_timeout' = {c.input_timeout}")
+        self.input_timeout, self.input_error_timeout = c.input_timeout, c.input_error_timeout
+        self.diag = NodeDiagnostics(self, period_s=c.diagnostics_period,
+                                    window_s=c.diagnostics_window,
+                                    drop_warn=c.drop_warn_fraction,
+                                    drop_error=c.drop_error_fraction)
         self._warned: dict[str, float] = {}
         self._warn_lock = threading.Lock()
         self._input_hints: dict[str, str] = {}
@@ -74,36 +120,34 @@ class QualityNode(Node):
         self._sync_params: dict = {}
         self._ticks = 0
         self._check_timer = None
+        self._outputs: dict = {}
+        self.pub_markers = None
+        self._counts: Counter = Counter()
+        self._drop_causes: set[str] = set()
 
     # ------------------------------------------------------------------ parameters
     def declare_sync_parameters(self) -> dict:
-        """Declare and return the input synchronisation parameters."""
-        self._sync_params = dict(
-            mode=declare(self, "sync_mode", "exact",
-                         "How inputs are matched by header stamp: 'exact' (equal stamps) or "
-                         "'approximate' (stamps within sync_slop).",
-                         choices=("exact", "approximate")),
-            slop_s=declare(self, "sync_slop", 0.05,
-                           "Largest stamp spread [s] of a matched input set in approximate mode.",
-                           min_value=0.0),
-            queue_size=declare(self, "sync_queue_size", 10,
-                               "Messages kept per input while waiting for their match; older "
-                               "ones are dropped and counted in /diagnostics.", min_value=1),
-            processing_queue_size=declare(
-                self, "processing_queue_size", 2,
-                "Matched frames waiting for processing; when the node falls behind, the "
-                "oldest waiting frame is dropped (counted as overrun in /diagnostics).",
-                min_value=1),
-        )
+        """Declare the input synchronisation parameters; ``SyncedInputs`` keywords."""
+        self._sync_params = self.declare_settings(SyncParameters).synced_inputs_kwargs()
         return dict(self._sync_params)
 
-    def declare_live(self, name: str, default: Any, description: str,
-                     apply: Callable[[Any], None], **checks) -> Any:
-        """Declare a parameter that ``ros2 param set`` changes at run time: a new value is
-        checked (``min_value``, ``max_value``, ``choices``) and passed to ``apply``."""
-        value = declare(self, name, default, description, read_only=False, **checks)
-        self._live[name] = (apply, checks)
-        return value
+    def declare_settings(self, cls, live: dict[str, Callable[[Any], None]] | None = None):
+        """Declare the parameters of settings class ``cls`` (one declaration each, in its
+        fields' metadata) and return the instance; ``live``: per run-time parameter, the
+        function that applies a new value."""
+        live = dict(live or {})
+        values = {}
+        for spec in parameter_specs(cls):
+            if spec.live and spec.name not in live:
+                raise ValueError(f"parameter {spec.name!r} is live but has no apply function")
+            values[spec.name] = declare_spec(self, spec)
+            if spec.live:  # after declaring: the start-up value is not a change to apply
+                self._live[spec.name] = (live.pop(spec.name), dict(
+                    min_value=spec.min_value, max_value=spec.max_value, choices=spec.choices,
+                    open_min=spec.open_min, open_max=spec.open_max))
+        if live:
+            raise ValueError(f"apply functions for parameters that are not live: {sorted(live)}")
+        return from_parameters(cls, values)
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         for p in params:
@@ -144,6 +188,57 @@ class QualityNode(Node):
         for key in self._issue_keys - issues.keys():
             self.diag.clear(key)
         self._issue_keys |= issues.keys()
+
+    # ------------------------------------------------------------------ frames
+    def create_output(self, msg_type, name: str, qos=None):
+        """A publisher of one of :meth:`process`'s output messages (name = topic)."""
+        pub = self.create_publisher(msg_type, name, qos if qos is not None else output_qos())
+        self._outputs[name] = pub
+        return pub
+
+    def create_markers_output(self, enabled: bool, msg_type) -> None:
+        """``output/markers``, built only while someone subscribes."""
+        self.pub_markers = (self.create_publisher(msg_type, "output/markers", output_qos())
+                            if enabled else None)
+
+    def start_inputs(self, topics: Sequence[tuple[type, str]], *, hints=None,
+                     sync: dict | None = None, **kwargs) -> SyncedInputs:
+        """Subscribe to ``topics`` (matched by stamp, frames to :meth:`process`), with the
+        input watchdog; ``hints``: per input, what else fixes its absence."""
+        sync = self.declare_sync_parameters() if sync is None else sync
+        self.inputs = SyncedInputs(self, topics, self._run_frame, diagnostics=self.diag,
+                                   watchdog=self.new_watchdog(len(topics)), **sync, **kwargs)
+        self.watch_inputs(hints)
+        return self.inputs
+
+    def process(self, messages: list, markers: bool):
+        """One matched input set (in ``self.inputs.topics`` order) -> the frame's outputs
+        (``messages``, ``markers``, ``issues``, ``counts``); ``FrameRejected`` drops it."""
+        raise NotImplementedError
+
+    def _run_frame(self, synced) -> None:
+        t0 = time.perf_counter()
+        # markers cost about as much as the rest of a frame: only for a listener
+        markers = self.pub_markers is not None and self.pub_markers.get_subscription_count() > 0
+        try:
+            out = self.process(list(synced.messages), markers)
+        except FrameRejected as exc:
+            if exc.cause:
+                self._drop_causes.add(exc.cause)
+                self.warn_input(exc.cause, f"dropping frame: {exc}")
+            self.diag.frame_dropped(exc.reason)
+            return
+        for cause in self._drop_causes:
+            self.diag.clear(cause)
+        self.report_issues(out.issues)
+        for name, msg in out.messages.items():
+            self._outputs[name].publish(msg)
+        if out.markers is not None and self.pub_markers is not None:
+            self.pub_markers.publish(out.markers)
+        for key, n in out.counts.items():
+            self._counts[key] += n
+            self.diag.set_value(key, self._counts[key])
+        self.diag.frame_processed((time.perf_counter() - t0) * 1e3)
 
     # ------------------------------------------------------------------ watchdog
     def new_watchdog(self, n_inputs: int) -> InputWatchdog:

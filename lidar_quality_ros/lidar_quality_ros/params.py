@@ -2,10 +2,10 @@
 from __future__ import annotations
 
 import math
-
 from pathlib import Path
 from typing import Any
 
+from lidar_quality_core.parameters import ParamSpec, check_value
 from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
                                 ParameterType)
 
@@ -21,7 +21,8 @@ RCLPY_PARAMETERS = ("use_sim_time", "start_type_description_service")
 
 def declare(node, name: str, default: Any, description: str, *, read_only: bool = True,
             min_value: float | None = None, max_value: float | None = None,
-            choices: tuple[str, ...] | None = None) -> Any:
+            choices: tuple[str, ...] | None = None, open_min: bool = False,
+            open_max: bool = False) -> Any:
     """Declare ``name`` with a description (and range / choices) and return its value.
 
     Values outside the range or the choices, and non-finite floats, raise ``ValueError``
@@ -30,6 +31,8 @@ def declare(node, name: str, default: Any, description: str, *, read_only: bool 
     start, and ``ros2 param set`` on one of them is refused ("read-only", restart the
     node with the new value) instead of being accepted and ignored. A node that applies
     a parameter at run time declares it with ``read_only=False`` and handles the change.
+    ROS ranges are closed: an open bound (``open_min`` / ``open_max``) is stated in the
+    descriptor's additional constraints and enforced here.
     """
     if not description:
         raise ValueError(f"parameter {name!r} needs a description")
@@ -38,6 +41,9 @@ def declare(node, name: str, default: Any, description: str, *, read_only: bool 
                                type=_TYPES.get(type(default), ParameterType.PARAMETER_NOT_SET))
     if choices:
         desc.additional_constraints = "one of: " + ", ".join(choices)
+    if open_min or open_max:
+        desc.additional_constraints = ParamSpec(name, default, description, min_value, max_value,
+                                                open_min, open_max).range_text()
     if min_value is not None or max_value is not None:
         lo = -float("inf") if min_value is None else min_value
         hi = float("inf") if max_value is None else max_value
@@ -51,20 +57,16 @@ def declare(node, name: str, default: Any, description: str, *, read_only: bool 
         value = node.declare_parameter(name, default, desc).value
     except Exception as exc:  # rclpy's own refusals (type, range) do not always name it
         raise ValueError(f"parameter {name!r}: {exc}") from None
-    check_value(name, value, min_value=min_value, max_value=max_value, choices=choices)
+    check_value(name, value, min_value=min_value, max_value=max_value, choices=choices,
+                open_min=open_min, open_max=open_max)
     return value
 
 
-def check_value(name: str, value: Any, *, min_value: float | None = None,
-                max_value: float | None = None, choices: tuple[str, ...] | None = None) -> None:
-    """Raise ``ValueError`` naming ``name`` when ``value`` is not finite, not one of
-    ``choices`` or outside ``[min_value, max_value]``."""
-    if isinstance(value, float) and not math.isfinite(value):
-        raise ValueError(f"parameter {name!r} = {value!r}: must be a finite number")
-    if choices and value not in choices:
-        raise ValueError(f"parameter {name!r} = {value!r}: expected one of {list(choices)}")
-    if min_value is not None and value < min_value or max_value is not None and value > max_value:
-        raise ValueError(f"parameter {name!r} = {value!r}: outside [{min_value}, {max_value}]")
+def declare_spec(node, spec: ParamSpec) -> Any:
+    """Declare one :class:`ParamSpec` (read-only unless ``spec.live``); its value."""
+    return declare(node, spec.name, spec.default, spec.description, read_only=not spec.live,
+                   min_value=spec.min_value, max_value=spec.max_value, choices=spec.choices,
+                   open_min=spec.open_min, open_max=spec.open_max)
 
 
 def config_file(package: str, node_name: str) -> Path:
@@ -103,9 +105,13 @@ def parameter_table(node) -> str:
             continue
         d = node.describe_parameter(name)
         text = d.description.removesuffix(_LIVE).removesuffix(_READ_ONLY)
-        if d.additional_constraints:
+        ranges = list(d.floating_point_range) + list(d.integer_range)
+        if d.additional_constraints.startswith("Range"):
+            text += " " + d.additional_constraints  # an open range: ROS ranges are closed
+            ranges = []
+        elif d.additional_constraints:
             text += f" ({d.additional_constraints})"
-        for r in list(d.floating_point_range) + list(d.integer_range):
+        for r in ranges:
             lo, hi = (("-inf" if v <= -2**63 or v == -math.inf else
                        "inf" if v >= 2**63 - 1 or v == math.inf else f"{v:g}")
                       for v in (r.from_value, r.to_value))

@@ -24,7 +24,6 @@ all the same); 2 bad arguments, parameters or models (nothing written).
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import shutil
 import sys
 import time
@@ -33,6 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable
 
+from lidar_quality_core.frame import FrameRejected
 from lidar_quality_core.time_sync import stamp_of_bytes
 from lidar_quality_ros.perception_bag import (DEFAULT_TOPICS, HEAD_TOPIC, HEAD_VARIANCE_TOPIC,
                                               resolve_bags)
@@ -62,67 +62,87 @@ class Drop(Exception):
 
 
 # ----------------------------------------------------------------------- parameters
+def parameters_class(node: str):
+    """The dataclass declaring ``node``'s own parameters (besides the common ones)."""
+    if node == "lmd":
+        from lmd_ros.pipeline import LmdParameters as cls
+    elif node == "lms":
+        from lms_ros.pipeline import LmsParameters as cls
+    else:
+        from mimo_ros.pipeline import MimoParameters as cls
+    return cls
+
+
+def node_specs(node: str) -> dict:
+    """Every parameter ``node`` declares, by name (the node's own declarations)."""
+    from lidar_quality_core.parameters import parameter_specs
+    from lidar_quality_ros.node_base import BASE_PARAMETERS
+
+    return {s.name: s for s in BASE_PARAMETERS + parameter_specs(parameters_class(node))}
+
+
 def node_parameters(node: str, overrides: dict | None = None) -> dict:
-    """``ros__parameters`` of the node's installed config YAML with ``overrides`` applied
-    (unknown names and values of another type than the YAML's raise ``UsageError``)."""
+    """The node's parameter values: declared defaults, then its installed config YAML, then
+    ``overrides``; every value checked as the node checks it (unknown names, another type
+    or a value outside the declared range / choices raise ``UsageError``)."""
     from lidar_quality_ros.params import config_parameters
 
-    params = config_parameters(NODES[node], f"{node}_node")
-    for name, value in (overrides or {}).items():
-        if name not in params:
-            raise UsageError(f"unknown parameter {node}.{name} (known: {', '.join(params)})")
-        default = params[name]
-        if isinstance(default, float) and type(value) is int:
-            value = float(value)
-        elif isinstance(default, str) and not isinstance(value, str) and value is not None:
-            value = str(value)      # e.g. ring_field=on: YAML's bool, meant as a name
-        if type(value) is not type(default):
-            raise UsageError(f"parameter {node}.{name} = {value!r}: expected a "
-                             f"{type(default).__name__} like {default!r}")
-        params[name] = value
+    specs = node_specs(node)
+    params = {name: spec.default for name, spec in specs.items()}
+    config = config_parameters(NODES[node], f"{node}_node")
+    for source, values in (("config", config), ("override", overrides or {})):
+        for name, value in values.items():
+            if name not in specs:
+                raise UsageError(f"unknown parameter {node}.{name} ({source}; known: "
+                                 f"{', '.join(specs)})")
+            default = specs[name].default
+            if isinstance(default, float) and type(value) is int:
+                value = float(value)
+            elif isinstance(default, str) and not isinstance(value, str) and value is not None:
+                value = str(value)      # e.g. ring_field=on: YAML's bool, meant as a name
+            if type(value) is not type(default):
+                raise UsageError(f"parameter {node}.{name} = {value!r}: expected a "
+                                 f"{type(default).__name__} like {default!r}")
+            try:
+                specs[name].check(value)
+            except ValueError as exc:
+                raise UsageError(f"{node}: {exc}") from None
+            params[name] = value
     return params
 
 
-def _settings(cls, params: dict, **extra):
-    """``cls`` (a settings dataclass) from the parameters named like its fields, validated."""
-    names = {f.name for f in dataclasses.fields(cls)}
-    kw = {k: tuple(v) if isinstance(v, list) else v for k, v in params.items() if k in names}
-    settings = cls(**{**kw, **extra})
-    settings.validate()
-    return settings
+def node_config(node: str, params: dict):
+    """The node's parameters object (``parameters_class``) of ``params``, its settings
+    validated as the node validates them."""
+    from lidar_quality_core.parameters import from_parameters
+
+    config = from_parameters(parameters_class(node), params)
+    config.settings.validate()
+    return config
 
 
 def node_settings(node: str, params: dict):
     """The pipeline settings a node builds from its parameters (``node_parameters``)."""
-    if node == "mimo":
-        from mimo_ros.pipeline import settings_from_parameters
-        return settings_from_parameters(params)
-    if node == "lmd":
-        from lmd_ros.pipeline import LmdSettings as cls
-    else:
-        from lms_ros.pipeline import LmsSettings as cls
-    return _settings(cls, params)
+    return node_config(node, params).settings
 
 
-def _models(node: str, params: dict, defaults, feature_names):
-    from lidar_quality_core.meta_model import MetaModels
+def _models(node: str, config):
+    import importlib
 
-    paths = [params.get(k) or str(d) for k, d in zip(("classifier_path", "regressor_path"),
-                                                     defaults)]
+    pipeline = importlib.import_module(f"{NODES[node]}.pipeline")
     try:
-        # the recorded training settings too, as the node checks them
-        return MetaModels(*paths, feature_names, settings=node_settings(node, params),
-                          method=node, warn=lambda t: print(f"process_bag: {node}: warning: "
-                                                            f"{t}", file=sys.stderr))
-    except Exception as exc:  # noqa: BLE001 - any load failure refuses the run
-        raise UsageError(f"{node}: cannot load the meta models: {exc}") from exc
+        return pipeline.load_models(config, warn=lambda t: print(
+            f"process_bag: {node}: warning: {t}", file=sys.stderr))
+    except RuntimeError as exc:  # any load failure refuses the run
+        raise UsageError(f"{node}: {exc}") from exc
 
 
 # ----------------------------------------------------------------------- node runners
 @dataclass
 class Runner:
     """One node: its input topics (key -> topic), which of them it needs, and ``run``
-    (``get(key)`` -> decoded message or None) -> ``(outputs, counts, issues)``."""
+    (``get(key)`` -> decoded message or None) -> the processor's frame outputs
+    (``lidar_quality_core.frame``)."""
 
     name: str
     topics: dict
@@ -131,55 +151,38 @@ class Runner:
 
 
 def _lmd(p: dict) -> Runner:
-    from lmd_ros.pipeline import LmdProcessor, default_model_paths
+    from lmd_ros.pipeline import LmdProcessor
 
-    s = node_settings("lmd", p)
-    proc = LmdProcessor(s, _models("lmd", p, default_model_paths(s.proposal_mode),
-                                   s.feature_names()), min_confidence=p["min_confidence"])
-    keys = ["points"] + (["detections"] if s.proposal_mode != "exact" else []) + (
-        ["proposals"] if s.proposal_mode != "none" else [])
-
-    def run(get):
-        out = proc.process(get("points"), get("detections"), get("proposals"))
-        return ((out.detections, out.quality),
-                {"detections_in": len(out.kept), "detections_out": int(out.kept.sum()),
-                 "detections_invalid": int((~out.frame.valid).sum())}, out.issues)
-
-    return Runner("lmd", {k: DEFAULT_TOPICS[k] for k in keys}, tuple(keys), run)
+    c = node_config("lmd", p)
+    proc = LmdProcessor(c.settings, _models("lmd", c), min_confidence=c.min_confidence)
+    mode = c.settings.proposal_mode
+    keys = ["points"] + (["detections"] if mode != "exact" else []) + (
+        ["proposals"] if mode != "none" else [])
+    return Runner("lmd", {k: DEFAULT_TOPICS[k] for k in keys}, tuple(keys),
+                  lambda get: proc.process(get("points"), get("detections"), get("proposals")))
 
 
 def _lms(p: dict) -> Runner:
-    from lms_ros.pipeline import LmsProcessor, default_model_paths
+    from lms_ros.pipeline import LmsProcessor
 
-    s = node_settings("lms", p)
-    proc = LmsProcessor(s, _models("lms", p, default_model_paths(), s.metric_names()))
+    c = node_config("lms", p)
+    proc = LmsProcessor(c.settings, _models("lms", c))
     # the segmentation cloud carries points and probabilities; separately: /lidar/points
-    keys = ("points", "segmentation") if p["separate_probabilities"] else ("segmentation",)
-
-    def run(get):
-        pts = get(keys[0])
-        out = proc.process(pts, get("segmentation") if len(keys) == 2 else None)
-        res = out.result
-        return ((out.points, out.segments),
-                {"points_in": pts.width * pts.height,
-                 "points_out": out.points.width * out.points.height,
-                 "segments": res.n_segments, "segments_scored": len(res.kept_ids)}, out.issues)
-
-    return Runner("lms", {k: DEFAULT_TOPICS[k] for k in keys}, keys, run)
+    keys = ("points", "segmentation") if c.separate_probabilities else ("segmentation",)
+    return Runner("lms", {k: DEFAULT_TOPICS[k] for k in keys}, keys,
+                  lambda get: proc.process(get(keys[0]),
+                                           get("segmentation") if len(keys) == 2 else None))
 
 
 def _mimo(p: dict) -> Runner:
-    from mimo_ros.pipeline import MimoProcessor, NoHeadError, default_model_paths
+    from mimo_ros.pipeline import MimoProcessor, NoHeadError
 
-    s = node_settings("mimo", p)
-    models = _models("mimo", p, default_model_paths(s.use_points), s.feature_names())
-    try:
-        proc = MimoProcessor(s, models, scores=p["output_scores"])
-    except ValueError as exc:
-        raise UsageError(f"mimo.output_scores: {exc}") from None
+    c = node_config("mimo", p)
+    s = c.settings
+    proc = MimoProcessor(s, _models("mimo", c), scores=c.output_scores)
     K = s.num_heads
     topics = {f"head_{k}": HEAD_TOPIC.format(k=k) for k in range(K)}
-    if p["use_variances"]:
+    if c.use_variances:
         topics.update({f"var_{k}": HEAD_VARIANCE_TOPIC.format(k=k) for k in range(K)})
     if s.use_points:
         topics["points"] = DEFAULT_TOPICS["points"]
@@ -195,16 +198,15 @@ def _mimo(p: dict) -> Runner:
                 return None
 
         heads = [optional(f"head_{k}") for k in range(K)]
-        variances = ([optional(f"var_{k}") for k in range(K)] if p["use_variances"]
-                     else None)
+        variances = [optional(f"var_{k}") for k in range(K)] if c.use_variances else None
         cloud = optional("points") if s.use_points else None
         try:
-            res = proc.process(heads, variances, cloud)
+            out = proc.process(heads, variances, cloud)
         except NoHeadError as exc:
-            raise Drop("undecodable_input" if undecodable else "no_head",
+            raise Drop("undecodable_input" if undecodable else exc.reason,
                        undecodable.get("undecodable", str(exc))) from None
-        return ((res.out.detections, res.out.uncertainty), res.counts,
-                {**undecodable, **res.issues})
+        out.issues.update(undecodable)
+        return out
 
     return Runner("mimo", topics, (), run)
 
@@ -315,15 +317,14 @@ def _process_frame(frame: _Frame, runners, stats, warn, write) -> None:
             missing = [r.topics[k] for k in r.required if r.topics[k] not in frame.msgs]
             if missing:
                 raise Drop("missing_input", f"no {', '.join(missing)} at stamp {frame.stamp_ns}")
-            outputs, counts, issues = r.run(lambda key: frame.get(r.topics[key])
-                                            if key in r.topics else None)
+            out = r.run(lambda key: frame.get(r.topics[key]) if key in r.topics else None)
         except Drop as exc:
             st.dropped[exc.reason] += 1
             warn(r.name, exc.reason, f"frame at stamp {frame.stamp_ns} dropped: {exc}")
             continue
-        except Exception as exc:  # noqa: BLE001 - CloudFormatError, ValueError, bugs
-            from lidar_quality_core.pointcloud import CloudFormatError
-            reason = "malformed_cloud" if isinstance(exc, CloudFormatError) else "processing_error"
+        except Exception as exc:  # noqa: BLE001 - FrameRejected, ValueError, bugs: reported
+            # as the node: a rejected frame counts under its reason
+            reason = exc.reason if isinstance(exc, FrameRejected) else "processing_error"
             st.dropped[reason] += 1
             warn(r.name, reason, f"frame at stamp {frame.stamp_ns} dropped: "
                                  f"{type(exc).__name__}: {exc}")
@@ -331,11 +332,11 @@ def _process_frame(frame: _Frame, runners, stats, warn, write) -> None:
         finally:
             st.wall_s += time.perf_counter() - t0
         st.frames_out += 1
-        st.counts.update(counts)
-        for key, text in issues.items():
+        st.counts.update(out.counts)
+        for key, text in out.issues.items():
             st.issues[key] += 1
             warn(r.name, key, f"stamp {frame.stamp_ns}: {text}")
-        for (topic, msgtype), msg in zip(OUTPUTS[r.name], outputs):
+        for (topic, msgtype), msg in zip(OUTPUTS[r.name], out.messages.values()):
             write(topic, msgtype, log_ns, msg)
 
 
@@ -465,9 +466,20 @@ def process_bag(in_bag, out_bag, *, nodes=tuple(NODES), params: dict | None = No
 
 
 # ----------------------------------------------------------------------- command line
+#: the processors' counts (``detections.in`` ...), with "." read as "_"
 ITEMS = {"lmd": "{detections_in} det -> {detections_out}",
-         "lms": "{points_in} pts -> {points_out}, {segments} seg",
+         "lms": "{points_in} pts, {segments} seg -> {segments_scored} scored",
          "mimo": "{boxes_in} boxes -> {detections_out} merged"}
+
+
+class _Items(dict):
+    """Counts for ``ITEMS``: ``detections_in`` reads ``detections.in``; absent: 0."""
+
+    def __init__(self, counts):
+        super().__init__({k.replace(".", "_"): v for k, v in counts.items()})
+
+    def __missing__(self, key):
+        return 0
 
 
 def format_summary(summaries: list[dict]) -> str:
@@ -487,7 +499,7 @@ def format_summary(summaries: list[dict]) -> str:
         fps = f"{t.frames_in / t.wall_s:.1f}" if t.wall_s else "-"
         reasons = ", ".join(f"{k} {v}" for k, v in sorted(t.dropped.items())) or "-"
         lines.append(f"{name:<6}{t.frames_in:>6}{t.frames_out:>6}{sum(t.dropped.values()):>9}"
-                     f"  {ITEMS[name].format_map(t.counts):<34}{t.wall_s:>8.2f}{fps:>10}"
+                     f"  {ITEMS[name].format_map(_Items(t.counts)):<34}{t.wall_s:>8.2f}{fps:>10}"
                      f"  {reasons}")
     wall = sum(s["wall_s"] for s in summaries)
     frames = sum(s["frames"] for s in summaries)

@@ -40,70 +40,48 @@ frame_id mismatch between the inputs raise throttled warnings, the frame is proc
 """
 from __future__ import annotations
 
-import time
 
 from lidar_quality_core.detection_cdr import decode_detection_array
-from lidar_quality_core.meta_model import MetaModels
-from lidar_quality_core.pointcloud import CloudFormatError
 from lidar_quality_msgs.msg import DetectionQualityArray
 from lidar_quality_ros.node_base import QualityNode
-from lidar_quality_ros.params import declare
-from lidar_quality_ros.qos import output_qos
 from lidar_quality_ros.runner import run_node
-from lidar_quality_ros.synced_inputs import SyncedInputs
 from sensor_msgs.msg import PointCloud2
 from vision_msgs.msg import Detection3DArray
 from visualization_msgs.msg import MarkerArray
 
-from .pipeline import MODES, LmdProcessor, LmdSettings, default_model_paths
-
-_DEFAULTS = LmdSettings()
+from .pipeline import LmdParameters, LmdProcessor, load_models
 
 
 class LmdNode(QualityNode):
     def __init__(self, **kwargs):
         super().__init__("lmd_node", **kwargs)
-        self.settings = self._declare_settings()
+        p = self.declare_settings(LmdParameters, live={
+            "min_confidence": lambda v: setattr(self.processor, "min_confidence", float(v))})
         try:
-            self.settings.validate()
+            p.settings.validate()
         except ValueError as exc:
             raise ValueError(f"invalid parameter: {exc}") from None
-        min_conf = self.declare_live(
-            "min_confidence", 0.0,
-            "Publish on output/detections only detections with a meta confidence >= this "
-            "(and not NaN); 0 keeps every detection. output/quality always lists all of them.",
-            lambda v: setattr(self.processor, "min_confidence", float(v)),
-            min_value=0.0, max_value=1.0)
-        self.publish_markers = declare(self, "publish_markers", True,
-                                       "Publish output/markers (boxes coloured by "
-                                       "confidence; built only while someone subscribes).")
-        self.models = self._load_models()
-        self.processor = LmdProcessor(self.settings, self.models, min_confidence=min_conf)
+        self.settings = p.settings
+        self.models = load_models(p, warn=self.get_logger().warning)
+        self.processor = LmdProcessor(p.settings, self.models, min_confidence=p.min_confidence)
 
-        mode = self.settings.proposal_mode
+        mode = p.settings.proposal_mode
         topics = [(PointCloud2, "input/points")]
         if mode != "exact":
             topics.append((Detection3DArray, "input/detections"))
         if mode != "none":
             topics.append((Detection3DArray, "input/proposals"))
-        self.pub_detections = self.create_publisher(Detection3DArray, "output/detections",
-                                                    output_qos())
-        self.pub_quality = self.create_publisher(DetectionQualityArray, "output/quality",
-                                                 output_qos())
-        self.pub_markers = (self.create_publisher(MarkerArray, "output/markers", output_qos())
-                            if self.publish_markers else None)
+        self.create_output(Detection3DArray, "output/detections")
+        self.create_output(DetectionQualityArray, "output/quality")
+        self.create_markers_output(p.publish_markers, MarkerArray)
         for key, value in (("proposal_mode", mode),
                            ("model.confidence", self.models.confidence_model_id),
                            ("model.iou", self.models.iou_model_id)):
             self.diag.set_value(key, value)
-        self._counts = {"detections.in": 0, "detections.out": 0, "detections.invalid": 0}
         # Detection arrays arrive as bytes, decoded by detection_cdr: rclpy's own
         # deserialization of ~450 proposals x 4 hypotheses costs 100-300 ms per frame.
-        raw = {t: decode_detection_array for _, t in topics if t != "input/points"}
-        self.inputs = SyncedInputs(self, topics, self.on_frame, diagnostics=self.diag,
-                                   raw_decoders=raw, watchdog=self.new_watchdog(len(topics)),
-                                   **self.declare_sync_parameters())
-        self.watch_inputs({
+        self.start_inputs(topics, raw_decoders={t: decode_detection_array for _, t in topics
+                                                if t != "input/points"}, hints={
             "input/proposals": "set proposal_mode: none if your detector publishes no "
                                "pre-NMS proposals (with the none-mode models)",
             "input/detections": "set proposal_mode: exact if only proposals are published "
@@ -112,80 +90,10 @@ class LmdNode(QualityNode):
             f"lmd_node ready ({mode} mode, models {self.models.confidence_model_id} / "
             f"{self.models.iou_model_id}), inputs: {', '.join(self.inputs.topics)}")
 
-    def _declare_settings(self) -> LmdSettings:
-        d = _DEFAULTS
-        return LmdSettings(
-            proposal_mode=declare(
-                self, "proposal_mode", d.proposal_mode,
-                "Proposal sets: 'threshold' (input/detections + input/proposals, proposals "
-                "with BEV IoU > iou_threshold), 'exact' (input/proposals only: the node runs "
-                "NMS, sets are the NMS pre-images) or 'none' (input/detections only). The "
-                "models must be trained for the same mode.", choices=MODES),
-            iou_threshold=declare(
-                self, "iou_threshold", d.iou_threshold,
-                "threshold mode: a proposal joins a detection's set when their BEV IoU is "
-                "above this, in [0, 1).", min_value=0.0, max_value=1.0),
-            proposal_score_threshold=declare(
-                self, "proposal_score_threshold", d.proposal_score_threshold,
-                "threshold mode: proposals scoring <= this are ignored."),
-            nms_iou_threshold=declare(
-                self, "nms_iou_threshold", d.nms_iou_threshold,
-                "exact mode: BEV IoU above which the node's class-agnostic NMS suppresses a "
-                "proposal (reference detector: 0.1).", min_value=0.0, max_value=1.0),
-            nms_score_threshold=declare(
-                self, "nms_score_threshold", d.nms_score_threshold,
-                "exact mode: proposals scoring below this take no part in the NMS."),
-            class_names=tuple(declare(
-                self, "class_names", list(d.class_names),
-                "Class names in the order of the models' class feature (class id = "
-                "position); a detection of another class gets NaN confidence.")),
-        )
-
-    def _load_models(self) -> MetaModels:
-        mode = self.settings.proposal_mode
-        dc, dr = default_model_paths(mode)
-        cpath = declare(self, "classifier_path", "",
-                        "Meta classifier (model store file with manifest); empty: the "
-                        "shipped models/lmd/lmd_<proposal_mode>_classifier.joblib.",
-                        read_only=True) or str(dc)
-        rpath = declare(self, "regressor_path", "",
-                        "Meta regressor (predicted IoU); empty: the shipped "
-                        "models/lmd/lmd_<proposal_mode>_regressor.joblib.",
-                        read_only=True) or str(dr)
-        try:
-            # the recorded training settings first: exact and threshold share a schema
-            return MetaModels(cpath, rpath, self.settings.feature_names(),
-                              settings=self.settings, method="lmd",
-                              warn=self.get_logger().warning)
-        except Exception as exc:  # noqa: BLE001 - any load failure refuses the start
-            raise RuntimeError(f"cannot load the LMD meta models for proposal_mode "
-                               f"'{mode}' ({len(self.settings.feature_names())} features): "
-                               f"{exc}") from exc
-
-    def on_frame(self, synced) -> None:
-        t0 = time.perf_counter()
-        msgs = dict(zip(self.inputs.topics, synced.messages))
-        markers = self.pub_markers is not None and self.pub_markers.get_subscription_count() > 0
-        try:
-            out = self.processor.process(msgs["input/points"], msgs.get("input/detections"),
-                                         msgs.get("input/proposals"), markers=markers)
-        except CloudFormatError as exc:
-            self.warn_input("cloud", f"dropping frame: malformed input/points: {exc}")
-            self.diag.frame_dropped("malformed_cloud")
-            return
-        self.diag.clear("cloud")
-        self.report_issues(out.issues)
-        self.pub_detections.publish(out.detections)
-        self.pub_quality.publish(out.quality)
-        if out.markers is not None:
-            self.pub_markers.publish(out.markers)
-        c = self._counts
-        c["detections.in"] += len(out.kept)
-        c["detections.out"] += int(out.kept.sum())
-        c["detections.invalid"] += int((~out.frame.valid).sum())
-        for key, value in c.items():
-            self.diag.set_value(key, value)
-        self.diag.frame_processed((time.perf_counter() - t0) * 1e3)
+    def process(self, messages: list, markers: bool):
+        msgs = dict(zip(self.inputs.topics, messages))
+        return self.processor.process(msgs["input/points"], msgs.get("input/detections"),
+                                      msgs.get("input/proposals"), markers=markers)
 
 
 def main(args=None) -> int:

@@ -42,7 +42,6 @@ The cloud must have x, y, z and an intensity field (``intensity``, ``reflectance
 """
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -51,13 +50,16 @@ import numpy as np
 from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt_issue
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
                                               rescaled_scores)
+from lidar_quality_core.meta_model import MetaModels
 from lidar_quality_core.model_store import models_dir
+from lidar_quality_core.parameters import check_fields, group, param
 from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
 from lidar_quality_core.lmd import features
 from lidar_quality_core.lmd.proposal_sets import nms_preimages
 
-__all__ = ["MODES", "LmdSettings", "LmdFrame", "frame_features", "default_model_paths",
-           "take_detections", "LmdOutputs", "LmdProcessor", "frame_id_mismatch"]
+__all__ = ["MODES", "LmdSettings", "LmdParameters", "LmdFrame", "frame_features",
+           "default_model_paths", "load_models", "take_detections", "LmdOutputs",
+           "LmdProcessor", "frame_id_mismatch"]
 
 MODES = features.MODES
 
@@ -65,14 +67,29 @@ MODES = features.MODES
 @dataclass(frozen=True)
 class LmdSettings:
     """Feature settings; a model is valid only for the settings it was trained with
-    (its feature schema is :meth:`feature_names`)."""
+    (its feature schema is :meth:`feature_names`). Fields made with ``param`` are
+    lmd_node's parameters (declared from here)."""
 
-    proposal_mode: str = "threshold"
-    iou_threshold: float = 0.5             # threshold mode: BEV IoU > t puts a proposal in the set
-    proposal_score_threshold: float = 0.0  # threshold mode: proposals scoring <= this are ignored
-    nms_iou_threshold: float = 0.1         # exact mode: NMS run here (reference detector: 0.1)
-    nms_score_threshold: float = 0.1       # exact mode: proposals below are not NMS input
-    class_names: tuple = ("car", "truck", "pedestrian", "cyclist")
+    proposal_mode: str = param(
+        "threshold",
+        "Proposal sets: 'threshold' (input/detections + input/proposals, proposals with BEV "
+        "IoU > iou_threshold), 'exact' (input/proposals only: the node runs NMS, sets are the "
+        "NMS pre-images) or 'none' (input/detections only). The models must be trained for "
+        "the same mode.", choices=MODES)
+    iou_threshold: float = param(
+        0.5, "threshold mode: a proposal joins a detection's set when their BEV IoU is above "
+        "this.", min_value=0.0, max_value=1.0, open_max=True)
+    proposal_score_threshold: float = param(
+        0.0, "threshold mode: proposals scoring <= this are ignored.")
+    nms_iou_threshold: float = param(
+        0.1, "exact mode: BEV IoU above which the node's class-agnostic NMS suppresses a "
+        "proposal (reference detector: 0.1).", min_value=0.0, max_value=1.0)
+    nms_score_threshold: float = param(
+        0.1, "exact mode: proposals scoring below this take no part in the NMS.")
+    class_names: tuple = param(
+        ["car", "truck", "pedestrian", "cyclist"],
+        "Class names in the order of the models' class feature (class id = position); a "
+        "detection of another class gets NaN confidence.")
     #: Append the detector's per-class scores (``class_score_<name>``, in ``class_names``
     #: order) to the paper's features (features module: optional extras).
     class_score_features: bool = False
@@ -83,22 +100,32 @@ class LmdSettings:
 
     def validate(self) -> None:
         """Raise ``ValueError`` naming the first bad setting."""
-        if self.proposal_mode not in MODES:
-            raise ValueError(f"proposal_mode must be one of {MODES}, got {self.proposal_mode!r}")
-        if not 0.0 <= self.iou_threshold < 1.0:
-            raise ValueError(f"iou_threshold must be in [0, 1), got {self.iou_threshold}")
-        if not math.isfinite(self.proposal_score_threshold):
-            raise ValueError(f"proposal_score_threshold must be finite, got "
-                             f"{self.proposal_score_threshold}")
-        if not 0.0 <= self.nms_iou_threshold <= 1.0:
-            raise ValueError(f"nms_iou_threshold must be in [0, 1], got {self.nms_iou_threshold}")
-        if not math.isfinite(self.nms_score_threshold):
-            raise ValueError(f"nms_score_threshold must be finite, got {self.nms_score_threshold}")
+        check_fields(self)
         names = tuple(self.class_names)
         if not names or not all(isinstance(c, str) and c for c in names):
             raise ValueError(f"class_names must be non-empty strings, got {list(names)}")
         if len(set(names)) != len(names):
             raise ValueError(f"class_names has duplicates: {list(names)}")
+
+
+@dataclass(frozen=True)
+class LmdParameters:
+    """Every parameter of lmd_node besides the common ones (``QualityNode``)."""
+
+    settings: LmdSettings = group(LmdSettings())
+    min_confidence: float = param(
+        0.0, "Publish on output/detections only detections with a meta confidence >= this "
+        "(and not NaN); 0 keeps every detection. output/quality always lists all of them.",
+        min_value=0.0, max_value=1.0, live=True)
+    publish_markers: bool = param(
+        True, "Publish output/markers (boxes coloured by confidence; built only while someone "
+        "subscribes).")
+    classifier_path: str = param(
+        "", "Meta classifier (model store file with manifest); empty: the shipped "
+        "models/lmd/lmd_<proposal_mode>_classifier.joblib.")
+    regressor_path: str = param(
+        "", "Meta regressor (predicted IoU); empty: the shipped "
+        "models/lmd/lmd_<proposal_mode>_regressor.joblib.")
 
 
 def default_model_paths(mode: str) -> tuple[Path, Path]:
@@ -107,6 +134,22 @@ def default_model_paths(mode: str) -> tuple[Path, Path]:
         raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
     d = models_dir() / "lmd"
     return d / f"lmd_{mode}_classifier.joblib", d / f"lmd_{mode}_regressor.joblib"
+
+
+def load_models(params: LmdParameters, warn=None) -> MetaModels:
+    """The meta models of ``params`` (the shipped pair of the proposal mode unless paths
+    are set), checked against the feature schema and the recorded training settings;
+    ``RuntimeError`` saying what and why otherwise."""
+    s = params.settings
+    dc, dr = default_model_paths(s.proposal_mode)
+    try:
+        # the recorded training settings first: exact and threshold share a schema
+        return MetaModels(params.classifier_path or str(dc), params.regressor_path or str(dr),
+                          s.feature_names(), settings=s, method="lmd", warn=warn)
+    except Exception as exc:  # noqa: BLE001 - any load failure refuses the start
+        raise RuntimeError(f"cannot load the LMD meta models for proposal_mode "
+                           f"'{s.proposal_mode}' ({len(s.feature_names())} features): "
+                           f"{exc}") from exc
 
 
 @dataclass
@@ -214,10 +257,13 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
     mode = settings.proposal_mode
     if mode not in MODES:
         raise ValueError(f"proposal_mode must be one of {MODES}, got {mode!r}")
-    xyz, inten = xyz_intensity(cloud_msg)
+    try:
+        xyz, inten = xyz_intensity(cloud_msg)
+    except CloudFormatError as exc:
+        raise CloudFormatError(f"malformed input/points: {exc}") from exc
     if inten is None:
-        raise CloudFormatError("cloud has no intensity field (intensity / reflectance / i): "
-                               "the reflectance features need it")
+        raise CloudFormatError("input/points has no intensity field (intensity / reflectance / "
+                               "i): the reflectance features need it")
     if mode != "none" and proposals_msg is None:
         raise ValueError(f'proposal mode "{mode}" needs the proposals')
     props = _arrays(proposals_msg) if mode != "none" else None
@@ -290,6 +336,15 @@ class LmdOutputs:
     #: input problems by key (``"detections"``, ``"frame_id"``, ``"scores"``,
     #: ``"roll_pitch"``); absent key = no problem
     issues: dict = field(default_factory=dict)
+
+    @property
+    def messages(self) -> dict:
+        return {"output/detections": self.detections, "output/quality": self.quality}
+
+    @property
+    def counts(self) -> dict:
+        return {"detections.in": len(self.kept), "detections.out": int(self.kept.sum()),
+                "detections.invalid": int((~self.frame.valid).sum())}
 
 
 class LmdProcessor:

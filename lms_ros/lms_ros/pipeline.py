@@ -62,17 +62,19 @@ from pathlib import Path
 import numpy as np
 
 from lidar_quality_core.conventions import probability_field
+from lidar_quality_core.meta_model import MetaModels
 from lidar_quality_core.model_store import models_dir
+from lidar_quality_core.parameters import group, param
 from lidar_quality_core.pointcloud import (CloudFormatError, check_xyz_fields,
                                             cloud_to_structured, pack_cloud, set_cloud_data)
-from lidar_quality_core.lms.projection import RangeImageConfig
-
 from lidar_quality_core.lms import segment_metrics
+from lidar_quality_core.lms.projection import RangeImageConfig
 from lidar_quality_core.lms.segment_metrics import SegmentResult, compute_segments
 
 __all__ = ["CLASS_NAMES", "NO_LABEL", "INTENSITY_FIELDS", "MAX_CHANNELS", "MAX_WIDTH",
            "MAX_PIXELS", "LmsSettings", "LmsInput",
-           "decode", "frame_metrics", "default_model_paths", "probability_field",
+           "decode", "frame_metrics", "default_model_paths", "LmsParameters", "load_models",
+           "probability_field",
            "LmsOutputs", "LmsProcessor", "OUTPUT_FIELDS"]
 
 #: The reference segmenter's classes (``lidar_sim.classes.CLASS_NAMES``, copied: this
@@ -107,19 +109,33 @@ _LIMIT_WHY = {
 @dataclass(frozen=True)
 class LmsSettings:
     """Metric settings; a model is valid only for the class map it was trained with (its
-    feature schema is :meth:`metric_names`)."""
+    feature schema is :meth:`metric_names`). Fields made with ``param`` are lms_node's
+    parameters (declared from here)."""
 
-    #: Class map: class c reads the probability field ``probability_field(class_names[c])``.
-    class_names: tuple = CLASS_NAMES
-    channels: int = 64            # image rows (beams)
-    fov_up_deg: float = 3.0       # uniform rows without a ring field (RangeNet++ HDL-64)
-    fov_down_deg: float = -25.0
-    width: int = 2048             # image columns = 360 deg / horizontal resolution
-    use_ring: bool = True         # rows from the ring field when the cloud has one
-    ring_zero_top: bool = False   # ring 0 = top beam (else the lowest, as Velodyne drivers)
-    ring_field: str = "ring"
-    min_segment_points: int = 10  # SP below this: no metrics row, no confidence
-    sum_tolerance: float = 0.02   # |sum p - 1| above this: renormalized (and counted)
+    class_names: tuple = param(
+        list(CLASS_NAMES), "Class map: class c (the models' class order) reads the probability "
+        "field named class_names[c] with '-' and ' ' replaced by '_'.")
+    channels: int = param(64, "Range image rows (sensor beams).", min_value=1)
+    fov_up_deg: float = param(
+        3.0, "Upper edge of the vertical field of view [deg] (rows from elevation when the "
+        "cloud has no ring field).", min_value=-90.0, max_value=90.0)
+    fov_down_deg: float = param(
+        -25.0, "Lower edge of the vertical field of view [deg], below fov_up_deg.",
+        min_value=-90.0, max_value=90.0)
+    width: int = param(2048, "Range image columns = 360 deg / horizontal resolution.",
+                       min_value=1)
+    use_ring: bool = param(True, "Take the image row from the cloud's ring field when it has one.")
+    ring_zero_top: bool = param(
+        False, "Ring 0 is the top beam (Ouster, lidar_sim); false: ring 0 is the lowest beam "
+        "(Velodyne drivers).")
+    ring_field: str = param("ring", "Name of the ring (beam index) field.")
+    min_segment_points: int = param(
+        10, "Segments with fewer projected points (SP) get no confidence (NaN); the models "
+        "must be trained with the same value.", min_value=1)
+    sum_tolerance: float = param(
+        0.02, "Per-point probabilities summing outside 1 +- this are renormalized (with a "
+        "warning); uint8 input adds the quantization bound n * 0.5 / 255.",
+        min_value=0.0, max_value=0.999)
 
     def range_config(self) -> RangeImageConfig:
         return RangeImageConfig.uniform(self.channels, self.width, self.fov_up_deg,
@@ -351,6 +367,43 @@ def default_model_paths() -> tuple[Path, Path]:
     return d / "lms_classifier.joblib", d / "lms_regressor.joblib"
 
 
+@dataclass(frozen=True)
+class LmsParameters:
+    """Every parameter of lms_node besides the common ones (``QualityNode``)."""
+
+    settings: LmsSettings = group(LmsSettings())
+    separate_probabilities: bool = param(
+        False, "Take the probabilities from a second cloud on input/probabilities (same "
+        "points, same order, matched by stamp) instead of fields of input/points.")
+    publish_markers: bool = param(
+        True, "Publish output/markers (segment centroids coloured by confidence; built only "
+        "while someone subscribes).")
+    classifier_path: str = param(
+        "", "Meta classifier (model store file with manifest); empty: the shipped "
+        "models/lms/lms_classifier.joblib.")
+    regressor_path: str = param(
+        "", "Meta regressor (predicted IoU_adj); empty: the shipped "
+        "models/lms/lms_regressor.joblib.")
+
+
+def load_models(params: LmsParameters, warn=None) -> MetaModels:
+    """The meta models of ``params`` (the shipped pair unless paths are set), checked
+    against the metric schema and the recorded training settings; ``RuntimeError`` saying
+    what and why otherwise."""
+    s = params.settings
+    dc, dr = default_model_paths()
+    names = s.metric_names()
+    try:
+        return MetaModels(params.classifier_path or str(dc), params.regressor_path or str(dr),
+                          names, settings=s, method="lms", warn=warn)
+    except Exception as exc:  # noqa: BLE001 - any load failure refuses the start
+        hint = (" (class_names must be the class map the models were trained with)"
+                if "schema" in str(exc) else "")
+        raise RuntimeError(
+            f"cannot load the LMS meta models for {len(s.class_names)} classes "
+            f"({len(names)} metrics): {exc}{hint}") from exc
+
+
 # -- the node's frame work -----------------------------------------------------------------
 
 
@@ -377,6 +430,18 @@ class LmsOutputs:
     segments: object         # lidar_quality_msgs/SegmentQualityArray
     markers: object | None   # visualization_msgs/MarkerArray
     issues: dict             # key -> message of a throttled warning
+
+    @property
+    def messages(self) -> dict:
+        return {"output/points": self.points, "output/segments": self.segments}
+
+    @property
+    def counts(self) -> dict:
+        res = self.result
+        return {"points.in": len(self.inp), "points.invalid": self.inp.n_invalid_points,
+                "points.out_of_view": int(res.projection.out_of_fov.sum()),
+                "points.renormalized": self.inp.n_renormalized, "segments": res.n_segments,
+                "segments.scored": len(res.kept_ids)}
 
 
 class LmsProcessor:

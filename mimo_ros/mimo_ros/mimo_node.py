@@ -36,46 +36,29 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from lidar_quality_core.detection_cdr import decode_detection_array
-from lidar_quality_core.meta_model import MetaModels
 from lidar_quality_msgs.msg import BoxVarianceArray, ClusterUncertaintyArray
 from lidar_quality_ros.node_base import QualityNode
-from lidar_quality_ros.params import declare
-from lidar_quality_ros.qos import output_qos
 from lidar_quality_ros.runner import run_node
-from lidar_quality_ros.synced_inputs import SyncedInputs
 from sensor_msgs.msg import PointCloud2
 from vision_msgs.msg import Detection3DArray
 from visualization_msgs.msg import MarkerArray
 
-from lidar_quality_core.mimo.clustering import VOTING_RULES
-from .pipeline import (DEFAULT_CLASS_NAMES, InputLiveness, MimoProcessor, MimoSettings,
-                       NoHeadError, default_model_paths, settings_from_parameters)
+from .pipeline import InputLiveness, MimoParameters, MimoProcessor, load_models
 
 
 class MimoNode(QualityNode):
     def __init__(self, **kwargs):
         super().__init__("mimo_node", **kwargs)
-        self.settings = self._declare_settings()
-        self.use_variances = declare(
-            self, "use_variances", True,
-            "Also subscribe to input/head_k/variance (BoxVarianceArray of head k, same "
-            "stamps): the heads' predicted variances (ATV, aleatoric and predictive variance). "
-            "Without them these are NaN and the output covariance is the epistemic part.")
-        self.head_timeout = declare(
-            self, "head_timeout", 0.5,
-            "Seconds (of stamp time) an input may send nothing while the others arrive "
-            "before the node merges without it (warning in /diagnostics); it rejoins with "
-            "its next message.", min_value=1e-3)
-        self.publish_markers = declare(self, "publish_markers", True,
-                                       "Publish output/markers (boxes coloured by confidence).")
-        scores = self.declare_live(
-            "output_scores", "confidence",
-            "Hypothesis scores of output/detections: 'confidence' (the merged class "
-            "distribution scaled so that the top score is the meta confidence) or 'merged' "
-            "(the merged class distribution as it is).",
-            lambda v: setattr(self.processor, "scores", v), choices=("confidence", "merged"))
-        self.models = self._load_models()
-        self.processor = MimoProcessor(self.settings, self.models, scores=scores)
+        p = self.declare_settings(MimoParameters, live={
+            "output_scores": lambda v: setattr(self.processor, "scores", v)})
+        try:
+            p.settings.validate()
+        except ValueError as exc:
+            raise ValueError(f"invalid parameter: {exc}") from None
+        self.settings, self.use_variances = p.settings, p.use_variances
+        self.head_timeout = p.head_timeout
+        self.models = load_models(p, warn=self.get_logger().warning)
+        self.processor = MimoProcessor(self.settings, self.models, scores=p.output_scores)
 
         K = self.settings.num_heads
         topics = [(Detection3DArray, f"input/head_{k}") for k in range(K)]
@@ -89,77 +72,23 @@ class MimoNode(QualityNode):
             slop_ns=int(round(sync["slop_s"] * 1e9)) if sync["mode"] == "approximate" else 0,
             window=max(64, sync["queue_size"] * len(topics)))
         self._arrival_lock = threading.Lock()
-        self._partial_frames = 0
-        self.pub_detections = self.create_publisher(Detection3DArray, "output/detections",
-                                                    output_qos())
-        self.pub_uncertainty = self.create_publisher(ClusterUncertaintyArray,
-                                                     "output/uncertainty", output_qos())
-        self.pub_markers = (self.create_publisher(MarkerArray, "output/markers", output_qos())
-                            if self.publish_markers else None)
+        self.create_output(Detection3DArray, "output/detections")
+        self.create_output(ClusterUncertaintyArray, "output/uncertainty")
+        self.create_markers_output(p.publish_markers, MarkerArray)
+        self._stopped_since: dict[int, float] = {}
         # heads arrive as bytes, decoded straight to arrays: rclpy's own deserialization
         # of a 100-box head (400 hypotheses) costs tens of ms per message
-        self._stopped_since: dict[int, float] = {}
-        self.inputs = SyncedInputs(self, topics, self.on_frame, diagnostics=self.diag,
-                                   on_arrival=self._on_arrival, **sync,
-                                   raw_decoders={f"input/head_{k}": decode_detection_array
-                                                 for k in range(K)},
-                                   watchdog=self.new_watchdog(len(topics)))
-        self.watch_inputs({**{f"input/head_{k}": f"set num_heads: {k}" for k in range(1, K)},
-                           **{f"input/head_{k}/variance": "set use_variances: false"
-                              for k in range(K)},
-                           "input/points": "set use_points: false (with the models "
-                                           "trained without points)"})
+        self.start_inputs(
+            topics, sync=sync, on_arrival=self._on_arrival,
+            raw_decoders={f"input/head_{k}": decode_detection_array for k in range(K)},
+            hints={**{f"input/head_{k}": f"set num_heads: {k}" for k in range(1, K)},
+                   **{f"input/head_{k}/variance": "set use_variances: false" for k in range(K)},
+                   "input/points": "set use_points: false (with the models trained without "
+                                   "points)"})
         self.diag.set_value("inputs_stopped", "none")
         self.get_logger().info(
             f"mimo_node ready, inputs: {', '.join(self.inputs.topics)}; models: "
             f"{self.models.confidence_model_id}, {self.models.iou_model_id}")
-
-    # ---------------------------------------------------------------- set-up
-    def _declare_settings(self) -> MimoSettings:
-        num_heads = declare(self, "num_heads", 2,
-                            "Number K of detector heads, subscribed as input/head_0 .. "
-                            "input/head_{K-1}.", min_value=1, max_value=16)
-        eps = declare(self, "eps", 0.5,
-                      "DBSCAN radius on the distance 1 - rotated BEV IoU, in (0, 1): boxes "
-                      "with BEV IoU >= 1 - eps are neighbours.", min_value=0.0, max_value=1.0)
-        voting = declare(self, "voting", "consensus",
-                         "Minimum cluster size rule over the K heads: affirmative (1), "
-                         "consensus (int(K/2 + 1)) or unanimous (K).", choices=VOTING_RULES)
-        min_size = declare(self, "min_cluster_size", 0,
-                           "DBSCAN min_samples; 0: from the voting rule.", min_value=0)
-        class_aware = declare(self, "class_aware", False,
-                              "Cluster only boxes whose labels agree (default: class ignored, "
-                              "as LiDAR-MIMO).")
-        temperature = declare(self, "temperature", 1.0,
-                              "Temperature T of the merged class distribution "
-                              "softmax(mean member logits / T).", min_value=1e-6)
-        use_points = declare(self, "use_points", False,
-                             "Also subscribe to input/points and add the LMD in-box point "
-                             "features of the merged box (needs the points model).")
-        class_names = declare(self, "class_names", list(DEFAULT_CLASS_NAMES),
-                              "Foreground class names of the heads' hypotheses, in the order "
-                              "of the meta models' class feature.")
-        return settings_from_parameters(dict(
-            num_heads=num_heads, eps=eps, voting=voting, min_cluster_size=min_size,
-            class_aware=class_aware, temperature=temperature, use_points=use_points,
-            class_names=class_names))
-
-    def _load_models(self) -> MetaModels:
-        cpath = declare(self, "classifier_path", "",
-                        "Meta classifier (confidence) file; empty: the shipped "
-                        "models/mimo/mimo[_points]_classifier.joblib.")
-        rpath = declare(self, "regressor_path", "",
-                        "Meta regressor (predicted IoU) file; empty: the shipped "
-                        "models/mimo/mimo[_points]_regressor.joblib.")
-        dc, dr = default_model_paths(self.settings.use_points)
-        try:
-            return MetaModels(cpath or dc, rpath or dr, self.settings.feature_names(),
-                              settings=self.settings, method="mimo",
-                              warn=self.get_logger().warning)
-        except Exception as exc:  # noqa: BLE001 - any load problem refuses the start
-            raise RuntimeError(f"mimo_node: cannot load its meta models: {exc} (set "
-                               "classifier_path / regressor_path, or ship the models in "
-                               "models/mimo/)") from exc
 
     # ---------------------------------------------------------------- stopped inputs
     def _on_arrival(self, index: int, stamp_ns: int) -> None:
@@ -201,29 +130,11 @@ class MimoNode(QualityNode):
                 self._warn_stopped(j, DiagnosticStatus.ERROR)
 
     # ---------------------------------------------------------------- frames
-    def on_frame(self, synced) -> None:
-        t0 = time.perf_counter()
+    def process(self, messages: list, markers: bool):
         K = self.settings.num_heads
-        msgs = synced.messages
-        heads = list(msgs[:K])
-        variances = list(msgs[K:2 * K]) if self.use_variances else None
-        cloud = msgs[-1] if self.settings.use_points else None
-        # markers cost about as much as the rest of the frame: only for a listener
-        markers = self.pub_markers is not None and self.pub_markers.get_subscription_count() > 0
-        try:
-            res = self.processor.process(heads, variances, cloud, markers=markers)
-        except NoHeadError:
-            self.diag.frame_dropped("no_head")
-            return
-        if res.counts["partial_frames"]:
-            self._partial_frames += 1
-            self.diag.set_value("frames_partial", self._partial_frames)
-        self.report_issues(res.issues)
-        self.pub_detections.publish(res.out.detections)
-        self.pub_uncertainty.publish(res.out.uncertainty)
-        if res.markers is not None:
-            self.pub_markers.publish(res.markers)
-        self.diag.frame_processed((time.perf_counter() - t0) * 1e3)
+        variances = messages[K:2 * K] if self.use_variances else None
+        cloud = messages[-1] if self.settings.use_points else None
+        return self.processor.process(messages[:K], variances, cloud, markers=markers)
 
 
 def main(args=None) -> int:

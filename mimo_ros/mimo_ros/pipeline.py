@@ -49,17 +49,23 @@ from lidar_quality_core.box_geometry import as_boxes, inbox_point_stats
 from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
                                       detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
+from lidar_quality_core.frame import FrameRejected
+from lidar_quality_core.meta_model import MetaModels
 from lidar_quality_core.model_store import models_dir
+from lidar_quality_core.parameters import group, param
 
 from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, MergeResult, merge_heads
 from lidar_quality_core.mimo.uncertainty import BOX_PARAMS
 
 __all__ = ["DEFAULT_CLASS_NAMES", "STAT_FEATURES", "POINT_FEATURES", "MimoSettings",
-           "head_detections", "MimoFrame", "frame_features", "default_model_paths",
+           "MimoParameters", "load_models", "OUTPUT_SCORES", "head_detections", "MimoFrame",
+           "frame_features", "default_model_paths",
            "MimoOutput", "process_frame", "output_messages", "NoHeadError", "MimoFrameOutputs",
            "MimoProcessor", "InputLiveness", "Arrival"]
 
 DEFAULT_CLASS_NAMES = ("car", "truck", "pedestrian", "cyclist")
+#: ``output_scores``: what output/detections' hypothesis scores are
+OUTPUT_SCORES = ("confidence", "merged")
 #: Cluster statistics of a merged detection (``feature_names`` order).
 STAT_FEATURES = (("cluster_size", "head_fraction", "shannon_entropy", "aleatoric_entropy",
                   "mutual_information", "epistemic_total_variance", "aleatoric_total_variance")
@@ -83,10 +89,16 @@ class MimoSettings:
     ``use_points`` also the LMD own-box point features of the merged box.
     """
 
-    num_heads: int = 2
-    merge: MergeConfig = MergeConfig(score_type="probabilities", background_index=0)
-    use_points: bool = False
-    class_names: tuple = DEFAULT_CLASS_NAMES
+    num_heads: int = param(
+        2, "Number K of detector heads, subscribed as input/head_0 .. input/head_{K-1}.",
+        min_value=1, max_value=16)
+    merge: MergeConfig = group(MergeConfig(score_type="probabilities", background_index=0))
+    use_points: bool = param(
+        False, "Also subscribe to input/points and add the LMD in-box point features of the "
+        "merged box (needs the points model).")
+    class_names: tuple = param(
+        list(DEFAULT_CLASS_NAMES), "Foreground class names of the heads' hypotheses, in the "
+        "order of the meta models' class feature.")
 
     def feature_names(self) -> tuple[str, ...]:
         return STAT_FEATURES + (POINT_FEATURES if self.use_points else ())
@@ -113,25 +125,52 @@ class MimoSettings:
                 "affirmative 1, consensus int(K/2 + 1), unanimous K; 0 takes the rule's)")
 
 
-def settings_from_parameters(p: dict) -> MimoSettings:
-    """``MimoSettings`` of mimo_node's parameters (names as in ``config/mimo_node.yaml``;
-    the offline tools build them the way the node does)."""
-    merge = MergeConfig(eps=p["eps"], voting=p["voting"],
-                        min_cluster_size=p["min_cluster_size"] or None,
-                        class_aware=p["class_aware"], score_type="probabilities",
-                        background_index=0, temperature=p["temperature"])
-    settings = MimoSettings(num_heads=p["num_heads"], merge=merge, use_points=p["use_points"],
-                            class_names=tuple(p["class_names"]))
-    settings.validate()
-    return settings
-
-
 def default_model_paths(use_points: bool = False) -> tuple[Path, Path]:
     """Shipped classifier and regressor: ``models_dir()/mimo/<prefix>_{classifier,
     regressor}.joblib`` with prefix ``mimo`` (cluster statistics) or ``mimo_points``."""
     prefix = _MODEL_PREFIX[bool(use_points)]
     d = models_dir() / "mimo"
     return d / f"{prefix}_classifier.joblib", d / f"{prefix}_regressor.joblib"
+
+
+@dataclass(frozen=True)
+class MimoParameters:
+    """Every parameter of mimo_node besides the common ones (``QualityNode``)."""
+
+    settings: MimoSettings = group(MimoSettings())
+    use_variances: bool = param(
+        True, "Also subscribe to input/head_k/variance (BoxVarianceArray of head k, same "
+        "stamps): the heads' predicted variances (ATV, aleatoric and predictive variance). "
+        "Without them these are NaN and the output covariance is the epistemic part.")
+    head_timeout: float = param(
+        0.5, "Seconds (of stamp time) an input may send nothing while the others arrive before "
+        "the node merges without it (warning in /diagnostics); it rejoins with its next "
+        "message.", min_value=1e-3)
+    publish_markers: bool = param(True, "Publish output/markers (boxes coloured by confidence).")
+    output_scores: str = param(
+        "confidence", "Hypothesis scores of output/detections: 'confidence' (the merged class "
+        "distribution scaled so that the top score is the meta confidence) or 'merged' (the "
+        "merged class distribution as it is).", choices=OUTPUT_SCORES, live=True)
+    classifier_path: str = param(
+        "", "Meta classifier (confidence) file; empty: the shipped "
+        "models/mimo/mimo[_points]_classifier.joblib.")
+    regressor_path: str = param(
+        "", "Meta regressor (predicted IoU) file; empty: the shipped "
+        "models/mimo/mimo[_points]_regressor.joblib.")
+
+
+def load_models(params: MimoParameters, warn=None) -> MetaModels:
+    """The meta models of ``params`` (the shipped pair of ``use_points`` unless paths are
+    set), checked against the feature schema and the recorded training settings;
+    ``RuntimeError`` saying what and why otherwise."""
+    s = params.settings
+    dc, dr = default_model_paths(s.use_points)
+    try:
+        return MetaModels(params.classifier_path or dc, params.regressor_path or dr,
+                          s.feature_names(), settings=s, method="mimo", warn=warn)
+    except Exception as exc:  # noqa: BLE001 - any load problem refuses the start
+        raise RuntimeError(f"cannot load the MIMO meta models: {exc} (set classifier_path / "
+                           "regressor_path, or ship the models in models/mimo/)") from exc
 
 
 # ------------------------------------------------------------------ decoding
@@ -454,8 +493,10 @@ def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, mode
     return MimoOutput(frame, conf, iou, dets, unc)
 
 
-class NoHeadError(ValueError):
+class NoHeadError(FrameRejected):
     """A matched set without any head message (every head stopped or undecodable)."""
+
+    reason = "no_head"
 
 
 @dataclass
@@ -467,6 +508,11 @@ class MimoFrameOutputs:
     issues: dict
     counts: dict
     markers: object = None       # MarkerArray, or None when not asked for
+
+    @property
+    def messages(self) -> dict:
+        return {"output/detections": self.out.detections,
+                "output/uncertainty": self.out.uncertainty}
 
 
 class MimoProcessor:
@@ -482,7 +528,7 @@ class MimoProcessor:
 
     def __init__(self, settings: MimoSettings, models, *, scores: str = "confidence"):
         settings.validate()
-        if scores not in ("confidence", "merged"):
+        if scores not in OUTPUT_SCORES:
             raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
         self.settings, self.models, self.scores = settings, models, scores
 
@@ -519,8 +565,9 @@ class MimoProcessor:
             labels = out.frame.class_labels()
             texts = [f"{c} {p:.2f}" for c, p in zip(labels, out.confidence.tolist())]
             mk = box_markers(header, out.frame.merge.boxes, out.confidence, texts, ns="mimo")
-        counts = {"boxes_in": sum(len(a) for a in out.frame.arrays),
-                  "detections_out": len(out.frame), "partial_frames": int(len(present) < len(heads))}
+        counts = {"boxes.in": sum(len(a) for a in out.frame.arrays),
+                  "detections.out": len(out.frame),
+                  "frames_partial": int(len(present) < len(heads))}
         return MimoFrameOutputs(out, issues, counts, mk)
 
 

@@ -7,6 +7,7 @@ the proposal it came from (see :mod:`reference_perception.messages`).
 """
 from __future__ import annotations
 
+from lidar_quality_core.frame import FrameOutputs
 from lidar_quality_ros.params import declare
 from lidar_quality_ros.qos import output_qos
 from lidar_quality_ros.runner import run_node
@@ -26,17 +27,18 @@ class DetectorNode(CloudNode):
         self.publish_proposals = declare(self, "publish_proposals", True,
                                          "Also publish the pre-NMS proposals on output/proposals.")
         self.detector = ReferenceDetector(model_dir or None)
-        self.pub_det = self.create_publisher(Detection3DArray, "output/detections", output_qos(5))
-        self.pub_prop = self.create_publisher(Detection3DArray, "output/proposals", output_qos(5))
+        self.create_output(Detection3DArray, "output/detections", output_qos(5))
+        self.create_output(Detection3DArray, "output/proposals", output_qos(5))
         self.subscribe_points()
         self.get_logger().info("detector_node ready")
 
-    def process(self, header, cloud) -> None:
+    def process_cloud(self, header, cloud) -> FrameOutputs:
         out = self.detector.detect(*cloud.finite_points())
         dets, props = detector_messages(header, out, PROB_NAMES[1:])
-        self.pub_det.publish(dets)
+        msgs = {"output/detections": dets}
         if self.publish_proposals:
-            self.pub_prop.publish(props)
+            msgs["output/proposals"] = props
+        return FrameOutputs(msgs)
 
 
 def main(args=None) -> int:

@@ -9,6 +9,7 @@ with the same id come from the same candidate.
 """
 from __future__ import annotations
 
+from lidar_quality_core.frame import FrameOutputs
 from lidar_quality_msgs.msg import BoxVarianceArray
 from lidar_quality_ros.params import declare
 from lidar_quality_ros.qos import output_qos
@@ -30,17 +31,19 @@ class MultiHeadNode(CloudNode):
         k = declare(self, "num_heads", 2, "Number of heads to run and publish (1..trained).",
                     read_only=True, min_value=1, max_value=4)
         self.detector = MultiHeadDetector(model_dir or None, num_heads=k)
-        self.pubs = [(self.create_publisher(Detection3DArray, f"output/head_{i}", output_qos(5)),
-                      self.create_publisher(BoxVarianceArray, f"output/head_{i}/variance", output_qos(5)))
-                     for i in range(k)]
+        for i in range(k):
+            self.create_output(Detection3DArray, f"output/head_{i}", output_qos(5))
+            self.create_output(BoxVarianceArray, f"output/head_{i}/variance", output_qos(5))
         self.subscribe_points()
         self.get_logger().info(f"multihead_node ready, {k} heads")
 
-    def process(self, header, cloud) -> None:
+    def process_cloud(self, header, cloud) -> FrameOutputs:
         out = self.detector.detect(*cloud.finite_points())
-        for (p_det, p_var), (dets, var) in zip(self.pubs, head_messages(header, out, PROB_NAMES[1:])):
-            p_det.publish(dets)
-            p_var.publish(var)
+        msgs = {}
+        for i, (dets, var) in enumerate(head_messages(header, out, PROB_NAMES[1:])):
+            msgs[f"output/head_{i}"] = dets
+            msgs[f"output/head_{i}/variance"] = var
+        return FrameOutputs(msgs)
 
 
 def main(args=None) -> int:

@@ -8,6 +8,7 @@ per class (see :mod:`reference_perception.messages`; class names in the order of
 from __future__ import annotations
 
 import numpy as np
+from lidar_quality_core.frame import FrameOutputs
 from lidar_quality_ros.params import declare
 from lidar_quality_ros.qos import output_qos
 from lidar_quality_ros.runner import run_node
@@ -31,18 +32,18 @@ class SegmenterNode(CloudNode):
                 "Class of each probability field, in field order (fixed by the model).",
                 read_only=True)
         self.segmenter = ReferenceSegmenter.load(path or DEFAULT_MODEL_PATH)
-        self.pub = self.create_publisher(PointCloud2, "output/points", output_qos(5))
+        self.create_output(PointCloud2, "output/points", output_qos(5))
         self.subscribe_points()
         self.get_logger().info(f"segmenter_node ready, model {self.segmenter.model_id}")
 
-    def process(self, header, cloud) -> None:
+    def process_cloud(self, header, cloud) -> FrameOutputs:
         if not cloud.has_intensity:
             self.warn_input("intensity", "input/points has no intensity field: using 0")
         # non-finite points keep their place and get the uniform distribution
         probs = self.segmenter.predict_proba(cloud.xyz, cloud.intensity, cloud.ring)
         xyz = np.where(cloud.finite[:, None], cloud.xyz, np.nan).astype(np.float32)
-        self.pub.publish(probability_cloud(header, xyz, cloud.intensity, probs, CLASS_NAMES,
-                                           quantize=self.quantize))
+        return FrameOutputs({"output/points": probability_cloud(
+            header, xyz, cloud.intensity, probs, CLASS_NAMES, quantize=self.quantize)})
 
 
 def main(args=None) -> int:

@@ -75,7 +75,7 @@ def test_annotated_bag(bag, tmp_path):
     lmd_quality = decoded(out, "/lmd/output/quality")
     lms_points = decoded(out, "/lms/output/points")
     mimo_dets = decoded(out, "/mimo/output/detections")
-    assert summary["nodes"]["lmd"]["counts"]["detections_in"] == sum(
+    assert summary["nodes"]["lmd"]["counts"]["detections.in"] == sum(
         len(f.detections.detections) for f in frames)
     for f, dets, quality, points, merged in zip(frames, lmd_dets, lmd_quality, lms_points,
                                                 mimo_dets):
@@ -189,6 +189,11 @@ def test_every_frame_malformed_fails_with_the_reasons_counted(bag, tmp_path):
     (["--param", "lmd.proposal_mode=bogus"], "proposal_mode"),
     (["--param", "lmd.iou_threshold=high"], "expected a float"),
     (["--param", "mimo.eps"], "expected <node>.<name>=<value>"),
+    # ranges and choices as the node declares them (before: accepted, failing later or not)
+    (["--param", "mimo.eps=1.0"], "'eps' = 1.0: outside (0, 1)"),
+    (["--param", "mimo.num_heads=17"], "'num_heads' = 17: outside [1, 16]"),
+    (["--param", "lmd.min_confidence=2.0"], "'min_confidence' = 2.0: outside [0, 1]"),
+    (["--param", "mimo.output_scores=best"], "expected one of ['confidence', 'merged']"),
     (["--param", "lms.width=512", "--nodes", "lmd"], "not in --nodes"),
     (["--out", "{bag}", "--overwrite"], "overlaps"),
 ])
@@ -200,6 +205,35 @@ def test_cli_argument_errors(bag, tmp_path, capsys, args, message):
     assert e.value.code == 2
     assert message in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.parametrize("node", ["lmd", "lms", "mimo"])
+def test_parameters_are_the_node_declarations_and_the_yaml_passes_them(ros, node):
+    """One declaration per parameter: the node declares exactly process_bag's specs (same
+    default, description, range, choices, read-only status), and the shipped config YAML
+    names only declared parameters with values they accept."""
+    import importlib
+
+    from lidar_quality_ros.params import config_parameters
+    from lidar_quality_tools.process import NODES, node_config, node_parameters, node_specs
+
+    pkg = NODES[node]
+    cls = {"lmd": "LmdNode", "lms": "LmsNode", "mimo": "MimoNode"}[node]
+    n = ros.start(getattr(importlib.import_module(f"{pkg}.{node}_node"), cls))
+    specs = node_specs(node)
+    declared = [k for k in n._parameters if k not in ("use_sim_time",
+                                                      "start_type_description_service")]
+    assert sorted(declared) == sorted(specs)
+    for name, spec in specs.items():
+        d = n.describe_parameter(name)
+        assert n.get_parameter(name).value == spec.default, name
+        assert d.description.startswith(spec.description), name
+        assert d.read_only == (not spec.live), name
+    config = config_parameters(pkg, f"{node}_node")
+    assert set(config) <= set(specs)
+    for name, value in config.items():
+        specs[name].check(value)
+    node_config(node, node_parameters(node))       # the YAML's settings validate
 
 
 def test_existing_output_needs_overwrite(bag, tmp_path, capsys):

@@ -179,7 +179,7 @@ def test_invalid_parameters_are_refused(ros, model_dir, name, value, match):
 
 
 def test_refuses_to_start_without_valid_models(ros, model_dir, tmp_path):
-    with pytest.raises(RuntimeError, match="cannot load its meta models.*missing"):
+    with pytest.raises(RuntimeError, match="cannot load the MIMO meta models.*missing"):
         ros.start(MimoNode, parameters={"classifier_path": str(tmp_path / "missing.joblib"),
                                         "regressor_path": str(tmp_path / "missing.joblib")})
     # the points models (another feature schema, trained with use_points): refused, not misread

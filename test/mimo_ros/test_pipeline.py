@@ -5,10 +5,11 @@ from lidar_quality_core.boxes import detections_to_arrays
 from lidar_quality_core.meta_model import MetaModels, fit_estimator, save_pair
 from lidar_quality_core.pointcloud import create_xyz_cloud
 from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, merge_heads
+from lidar_quality_core.parameters import from_parameters
 from mimo_ros.pipeline import (DEFAULT_CLASS_NAMES, POINT_FEATURES, STAT_FEATURES,
                                InputLiveness, MimoSettings, default_model_paths,
                                frame_features, head_detections, output_messages,
-                               process_frame, settings_from_parameters, MimoProcessor,
+                               process_frame, MimoProcessor,
                                NoHeadError)
 from reference_perception.messages import box_variance_array, detection_array
 from std_msgs.msg import Header
@@ -225,9 +226,12 @@ def test_min_cluster_size_above_the_head_count_is_refused():
     p = dict(num_heads=3, eps=0.5, voting="consensus", min_cluster_size=4, class_aware=False,
              temperature=1.0, use_points=False, class_names=list(NAMES))
     with pytest.raises(ValueError, match="min_cluster_size 4 > num_heads 3"):
-        settings_from_parameters(p)
+        from_parameters(MimoSettings, p).validate()
     for m in (0, 1, 3):
-        assert settings_from_parameters({**p, "min_cluster_size": m}).num_heads == 3
+        s = from_parameters(MimoSettings, {**p, "min_cluster_size": m})
+        s.validate()
+        assert s.num_heads == 3 and s.merge.min_cluster_size == (m or None)
+        assert s.merge.score_type == "probabilities" and s.merge.background_index == 0
 
 
 def test_head_in_another_frame_is_reported_and_merged():
@@ -431,10 +435,10 @@ def test_processor_is_the_node_frame_contract(models, tmp_path):
     ref = process_frame(heads[0].header, heads, None, s, models, serialized=True)
     assert bytes(res.out.detections) == bytes(ref.detections)
     np.testing.assert_array_equal(res.out.confidence, ref.confidence)
-    assert res.issues == {} and res.counts == {"boxes_in": 6, "detections_out": len(ref.frame),
-                                               "partial_frames": 0}
+    assert res.issues == {} and res.counts == {"boxes.in": 6, "detections.out": len(ref.frame),
+                                               "frames_partial": 0}
     assert len(res.markers.markers) >= len(ref.frame)
-    assert proc.process([heads[0], None]).counts["partial_frames"] == 1
+    assert proc.process([heads[0], None]).counts["frames_partial"] == 1
     with pytest.raises(NoHeadError):
         proc.process([None, None])
     with pytest.raises(ValueError, match="scores"):

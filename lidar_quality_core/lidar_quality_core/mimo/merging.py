@@ -35,6 +35,7 @@ from typing import Sequence
 import numpy as np
 
 from lidar_quality_core.box_geometry import as_boxes
+from lidar_quality_core.parameters import param
 
 from .clustering import (DBSCAN_IMPLS, VOTING_RULES, dbscan_pairs, dbscan_sklearn,
                          min_cluster_size, valid_neighbour_pairs)
@@ -63,13 +64,25 @@ class HeadDetections:
 
 @dataclass(frozen=True)
 class MergeConfig:
-    eps: float = 0.5                       # DBSCAN radius on 1 - BEV IoU, in (0, 1)
-    voting: str = "consensus"              # affirmative | consensus | unanimous
-    min_cluster_size: int | None = None    # overrides the voting rule when set
-    class_aware: bool = False              # cluster only boxes of equal member label
+    """Clustering and merging settings; the fields made with ``param`` are mimo_node's
+    parameters (declared from here)."""
+
+    eps: float = param(
+        0.5, "DBSCAN radius on the distance 1 - rotated BEV IoU: boxes with BEV IoU >= "
+        "1 - eps are neighbours.", min_value=0.0, max_value=1.0, open_min=True, open_max=True)
+    voting: str = param(
+        "consensus", "Minimum cluster size rule over the K heads: affirmative (1), consensus "
+        "(int(K/2 + 1)) or unanimous (K).", choices=VOTING_RULES)
+    min_cluster_size: int | None = param(
+        0, "DBSCAN min_samples; 0: from the voting rule.", min_value=0,
+        to_field=lambda v: v or None, to_param=lambda v: v or 0)   # None: the voting rule's
+    class_aware: bool = param(
+        False, "Cluster only boxes whose labels agree (default: class ignored, as LiDAR-MIMO).")
     score_type: str = "logits"             # logits | probabilities
     background_index: int | None = 0       # background column, None: all foreground
-    temperature: float = 1.0               # T of softmax(logits / T)
+    temperature: float = param(
+        1.0, "Temperature T of the merged class distribution softmax(mean member logits / T).",
+        min_value=0.0, open_min=True)
     yaw_deviation: str = "wrapped"         # ETV of yaw: wrapped | raw (uncertainty.py)
     yaw_variance: str = "top"              # predictive yaw variance: top | mixture
     dbscan: str = "own"                    # own | sklearn (same labels)
