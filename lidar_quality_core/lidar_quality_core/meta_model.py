@@ -545,3 +545,13 @@ def save_pair(out_dir, prefix: str, classifier, regressor, feature_names: Sequen
     save_model(regressor, rpath, feature_names=list(feature_names), task="regression",
                training_data=training_data, metrics=regressor_metrics, compress=compress)
     return cpath, rpath
+
+
+def model_path_param(role: str, target: str, shipped: str):
+    """The ``classifier_path`` / ``regressor_path`` parameter field of a node's parameters
+    (``lidar_quality_core.parameters``): ``role`` classifier | regressor, ``target`` what it
+    predicts, ``shipped`` the model used when the parameter is empty."""
+    from lidar_quality_core.parameters import param
+
+    return param("", f"Meta {role} ({target}; model store file with manifest); empty: the "
+                     f"shipped {shipped}.")

@@ -138,10 +138,8 @@ class SyncedInputs:
                 try:
                     msg = decode(msg)
                 except Exception as exc:  # noqa: BLE001 - bad bytes cost this message only
-                    self._logger.warn(f"dropping a message on {topic}: cannot decode it: {exc}",
-                                      throttle_duration_sec=5.0)
-                    if self._diag is not None:
-                        self._diag.frame_dropped("undecodable_input")
+                    self._dropped("undecodable_input", f"undecodable.{topic}",
+                                  f"dropping a message on {topic}: cannot decode it: {exc}")
                     return
             stamp = msg.header.stamp
             try:
@@ -149,10 +147,8 @@ class SyncedInputs:
             except ValueError as exc:
                 # nanosec >= 1e9 passes the wire (uint32): it must cost this message, not
                 # the node (an exception here stops the executor; found by fuzzing).
-                self._logger.warn(f"dropping a message on {topic}: {exc}",
-                                  throttle_duration_sec=5.0)
-                if self._diag is not None:
-                    self._diag.frame_dropped("invalid_stamp")
+                self._dropped("invalid_stamp", f"invalid_stamp.{topic}",
+                              f"dropping a message on {topic}: {exc}")
                 return
             if self.watchdog is not None:
                 self.watchdog.arrival(index, stamp_ns, time.monotonic())
@@ -171,13 +167,18 @@ class SyncedInputs:
             text = (f"{info.total_count} message(s) on {topic} lost in transport before they "
                     "reached the node (a cloud larger than the shared-memory profile carries? "
                     "see LQ_SHM_SEGMENT_MB in the README)")
-            if self._diag is not None:
-                self._diag.frame_dropped("message_lost", n)
-            if self._warn is not None:
-                self._warn(f"lost.{topic}", text)
-            else:
-                self._logger.warn(text, throttle_duration_sec=5.0)
+            self._dropped("message_lost", f"lost.{topic}", text, n)
         return on_lost
+
+    def _dropped(self, reason: str, cause: str, text: str, n: int = 1):
+        """Count ``n`` dropped under ``reason`` and warn under ``cause``: through the node's
+        per-cause warnings (a standing /diagnostics warning too) when it has them."""
+        if self._diag is not None:
+            self._diag.frame_dropped(reason, n)
+        if self._warn is not None:
+            self._warn(cause, text)
+        else:
+            self._logger.warn(text, throttle_duration_sec=5.0)
 
     def inject(self, index: int, stamp_ns: int, msg) -> None:
         """Queue ``msg`` for input ``index`` at ``stamp_ns`` as if it had arrived (not
@@ -188,16 +189,15 @@ class SyncedInputs:
             self.worker.submit(matched)
 
     def _overrun(self, n: int) -> None:
-        self._logger.warn(f"processing falls behind the input: dropped {n} waiting frame(s)",
-                          throttle_duration_sec=5.0)
-        if self._diag is not None:
-            self._diag.frame_dropped("overrun", n)
+        self._dropped("overrun", "overrun",
+                      f"processing falls behind the input: dropped {n} waiting frame(s)", n)
 
     def _run(self, matched: SyncedSet) -> None:
         # A bug or an unforeseen input must cost one frame, never the node.
         try:
             self._callback(matched)
         except Exception as exc:  # noqa: BLE001 - a bug or bad input costs this frame only
+            # the traceback in the log; /diagnostics keeps the one-line cause
             self._logger.error(f"frame at stamp {matched.stamp_ns} ns dropped: "
                                f"{type(exc).__name__}: {exc}\n{traceback.format_exc()}",
                                throttle_duration_sec=5.0)

@@ -50,7 +50,7 @@ import numpy as np
 from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt_issue
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
                                               rescaled_scores)
-from lidar_quality_core.meta_model import MetaModels
+from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import check_fields, group, param
 from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
@@ -120,12 +120,10 @@ class LmdParameters:
     publish_markers: bool = param(
         True, "Publish output/markers (boxes coloured by confidence; built only while someone "
         "subscribes).")
-    classifier_path: str = param(
-        "", "Meta classifier (model store file with manifest); empty: the shipped "
-        "models/lmd/lmd_<proposal_mode>_classifier.joblib.")
-    regressor_path: str = param(
-        "", "Meta regressor (predicted IoU); empty: the shipped "
-        "models/lmd/lmd_<proposal_mode>_regressor.joblib.")
+    classifier_path: str = model_path_param(
+        "classifier", "confidence", "models/lmd/lmd_<proposal_mode>_classifier.joblib")
+    regressor_path: str = model_path_param(
+        "regressor", "predicted IoU", "models/lmd/lmd_<proposal_mode>_regressor.joblib")
 
 
 def default_model_paths(mode: str) -> tuple[Path, Path]:

@@ -62,7 +62,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_quality_core.conventions import probability_field
-from lidar_quality_core.meta_model import MetaModels
+from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
 from lidar_quality_core.pointcloud import (CloudFormatError, check_xyz_fields,
@@ -378,12 +378,10 @@ class LmsParameters:
     publish_markers: bool = param(
         True, "Publish output/markers (segment centroids coloured by confidence; built only "
         "while someone subscribes).")
-    classifier_path: str = param(
-        "", "Meta classifier (model store file with manifest); empty: the shipped "
-        "models/lms/lms_classifier.joblib.")
-    regressor_path: str = param(
-        "", "Meta regressor (predicted IoU_adj); empty: the shipped "
-        "models/lms/lms_regressor.joblib.")
+    classifier_path: str = model_path_param(
+        "classifier", "confidence", "models/lms/lms_classifier.joblib")
+    regressor_path: str = model_path_param(
+        "regressor", "predicted IoU_adj", "models/lms/lms_regressor.joblib")
 
 
 def load_models(params: LmsParameters, warn=None) -> MetaModels:

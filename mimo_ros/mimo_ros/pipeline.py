@@ -50,7 +50,7 @@ from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
                                       detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
 from lidar_quality_core.frame import FrameRejected
-from lidar_quality_core.meta_model import MetaModels
+from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
 
@@ -151,12 +151,10 @@ class MimoParameters:
         "confidence", "Hypothesis scores of output/detections: 'confidence' (the merged class "
         "distribution scaled so that the top score is the meta confidence) or 'merged' (the "
         "merged class distribution as it is).", choices=OUTPUT_SCORES, live=True)
-    classifier_path: str = param(
-        "", "Meta classifier (confidence) file; empty: the shipped "
-        "models/mimo/mimo[_points]_classifier.joblib.")
-    regressor_path: str = param(
-        "", "Meta regressor (predicted IoU) file; empty: the shipped "
-        "models/mimo/mimo[_points]_regressor.joblib.")
+    classifier_path: str = model_path_param(
+        "classifier", "confidence", "models/mimo/mimo[_points]_classifier.joblib")
+    regressor_path: str = model_path_param(
+        "regressor", "predicted IoU", "models/mimo/mimo[_points]_regressor.joblib")
 
 
 def load_models(params: MimoParameters, warn=None) -> MetaModels:
