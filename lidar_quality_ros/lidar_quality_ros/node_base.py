@@ -28,13 +28,13 @@ from typing import Any, Callable, Sequence
 from diagnostic_msgs.msg import DiagnosticStatus
 from lidar_quality_core.frame import FrameRejected
 from lidar_quality_core.input_watchdog import InputWatchdog
-from lidar_quality_core.parameters import from_parameters, param, parameter_specs
+from lidar_quality_core.parameters import ParamSpec, from_parameters, param, parameter_specs
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
 
 from .diagnostics import NodeDiagnostics
-from .params import check_value, declare_spec
+from .params import declare_spec
 from .qos import output_qos
 from .synced_inputs import SyncedInputs
 
@@ -92,14 +92,14 @@ BASE_PARAMETERS = parameter_specs(CommonParameters) + parameter_specs(SyncParame
 
 
 class QualityNode(Node):
-    """Base of ``lmd_node``, ``lms_node`` and ``mimo_node``."""
+    """Base of ``lmd_node``, ``lms_node``, ``mimo_node`` and the reference perception nodes."""
 
     #: seconds between two log lines of the same warning cause
     warn_period_s = 5.0
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)
-        self._live: dict[str, tuple[Callable[[Any], None], dict]] = {}
+        self._live: dict[str, tuple[Callable[[Any], None], ParamSpec]] = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)
         c = self.declare_settings(CommonParameters)
         if c.drop_error_fraction < c.drop_warn_fraction:
@@ -142,9 +142,7 @@ class QualityNode(Node):
                 raise ValueError(f"parameter {spec.name!r} is live but has no apply function")
             values[spec.name] = declare_spec(self, spec)
             if spec.live:  # after declaring: the start-up value is not a change to apply
-                self._live[spec.name] = (live.pop(spec.name), dict(
-                    min_value=spec.min_value, max_value=spec.max_value, choices=spec.choices,
-                    open_min=spec.open_min, open_max=spec.open_max))
+                self._live[spec.name] = (live.pop(spec.name), spec)
         if live:
             raise ValueError(f"apply functions for parameters that are not live: {sorted(live)}")
         return from_parameters(cls, values)
@@ -154,7 +152,7 @@ class QualityNode(Node):
             if p.name not in self._live:
                 continue  # read-only ones never get here; use_sim_time is rclpy's own
             try:
-                check_value(p.name, p.value, **self._live[p.name][1])
+                self._live[p.name][1].check(p.value)
             except ValueError as exc:
                 return SetParametersResult(successful=False, reason=str(exc))
         for p in params:
