@@ -87,10 +87,11 @@ class NodeDiagnostics:
         with self._lock:
             self._sources.append((values_fn, dropped_fn, frames_lost_fn or dropped_fn))
 
-    def warn(self, key: str, message: str, level: int = WARN) -> None:
-        """Raise a standing warning (shown until ``clear``, and at least ``hold_s``)."""
+    def warn(self, key: str, message: str, level: int = WARN, *, transient: bool = False) -> None:
+        """Raise a standing warning (shown until ``clear``, and at least ``hold_s``); a
+        ``transient`` one (an event, e.g. one undecodable message) is shown for ``hold_s``."""
         with self._lock:
-            self._warnings[key] = [message, level, time.monotonic(), False]
+            self._warnings[key] = [message, level, time.monotonic(), transient]
             self._warn_counts[key] += 1
 
     def clear(self, key: str) -> None:

@@ -162,9 +162,11 @@ class QualityNode(Node):
         return SetParametersResult(successful=True)
 
     # ------------------------------------------------------------------ warnings
-    def warn_input(self, key: str, message: str, level=DiagnosticStatus.WARN) -> None:
+    def warn_input(self, key: str, message: str, level=DiagnosticStatus.WARN, *,
+                   transient: bool = False) -> None:
         """A log warning (at most once per ``warn_period_s`` for this cause) plus a standing
-        diagnostics warning for bad or missing input."""
+        diagnostics warning for bad or missing input (``transient``: an event, shown for the
+        diagnostics' hold time unless raised again)."""
         now = time.monotonic()
         with self._warn_lock:
             last = self._warned.get(key)
@@ -176,7 +178,7 @@ class QualityNode(Node):
             self.get_logger().error(message)
         elif due:
             self.get_logger().warn(message)
-        self.diag.warn(key, message, level)
+        self.diag.warn(key, message, level, transient=transient)
 
     def report_issues(self, issues: dict[str, str]) -> None:
         """Warn each input problem of a frame under its own cause; clear the causes of

@@ -172,11 +172,11 @@ class SyncedInputs:
 
     def _dropped(self, reason: str, cause: str, text: str, n: int = 1):
         """Count ``n`` dropped under ``reason`` and warn under ``cause``: through the node's
-        per-cause warnings (a standing /diagnostics warning too) when it has them."""
+        per-cause warnings (shown in /diagnostics for their hold time) when it has them."""
         if self._diag is not None:
             self._diag.frame_dropped(reason, n)
         if self._warn is not None:
-            self._warn(cause, text)
+            self._warn(cause, text, transient=True)
         else:
             self._logger.warn(text, throttle_duration_sec=5.0)
 
