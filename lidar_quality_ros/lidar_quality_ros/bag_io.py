@@ -5,13 +5,26 @@ and written are exactly the ones nodes publish and receive; messages that are on
 keep their original bytes. Our own message packages are registered in the ``rosbags``
 typestore from their .msg files (:mod:`lidar_quality_core.rosbag_types`), so the bags carry
 the definitions ``ros2 bag`` and Foxglove need.
+
+Any bag ``ros2 bag`` reads is read here (:func:`open_bag`): metadata of older rosbag2
+versions with an empty ``storage_identifier`` (taken from the files: ``*.db3`` sqlite3,
+``*.mcap`` MCAP) or an empty topic ``serialization_format`` (CDR, the only one rosbag2
+writes) is read through a corrected copy of ``metadata.yaml`` in a temporary folder beside
+links to the bag's files; the bag itself is never changed. Messages of types without an
+rclpy class here (e.g. a driver's raw packets) are read and copied as bytes; the tools
+that decode or publish skip them with one :class:`UnknownTypes` warning per type.
 """
 from __future__ import annotations
 
+import contextlib
 import importlib
-from dataclasses import dataclass
+import os
+import shutil
+import tempfile
+from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 from lidar_quality_core.rosbag_types import typestore
 
@@ -22,6 +35,123 @@ def message_class(msgtype: str):
     """rclpy message class of ``pkg/msg/Name``."""
     pkg, kind, name = msgtype.split("/")
     return getattr(importlib.import_module(f"{pkg}.{kind}"), name)
+
+
+@lru_cache(maxsize=None)
+def known_type(msgtype: str) -> bool:
+    """Whether ``msgtype`` has an rclpy class here (it can be decoded and published)."""
+    try:
+        message_class(msgtype)
+    except (ImportError, AttributeError, ValueError):
+        return False
+    return True
+
+
+@dataclass
+class UnknownTypes:
+    """One warning per message type without an rclpy class (``warn(text)``), naming its
+    topics; ``seen``: type -> topics, for summaries."""
+
+    warn: Callable[[str], None]
+    what: str = "skipped"
+    seen: dict = field(default_factory=dict)
+
+    def check(self, topic: str, msgtype: str) -> bool:
+        """True when ``msgtype`` is known; else warns once for the type and returns False."""
+        if known_type(msgtype):
+            return True
+        topics = self.seen.setdefault(msgtype, [])
+        if topic not in topics:
+            topics.append(topic)
+            if len(topics) == 1:
+                self.warn(f"message type {msgtype} (topic {topic}) is not available here "
+                          f"(no rclpy class; source the workspace that defines it): "
+                          f"{self.what}")
+        return False
+
+    def check_all(self, topics: dict[str, str]) -> list[str]:
+        """Topics (topic -> type) whose type is known; one warning per unknown type, naming
+        all its topics."""
+        unknown: dict[str, list[str]] = {}
+        for t, ty in topics.items():
+            if not known_type(ty):
+                unknown.setdefault(ty, []).append(t)
+        for ty, ts in unknown.items():
+            new = [t for t in ts if t not in self.seen.get(ty, [])]
+            if new and ty not in self.seen:
+                self.warn(f"message type {ty} (topic{'s' if len(ts) > 1 else ''} "
+                          f"{', '.join(ts)}) is not available here (no rclpy class; source the "
+                          f"workspace that defines it): {self.what}")
+            self.seen.setdefault(ty, []).extend(new)
+        return [t for t, ty in topics.items() if known_type(ty)]
+
+
+# ----------------------------------------------------------------------- reading
+def metadata_fixes(path: Path | str) -> tuple[dict, list[str]]:
+    """The bag's metadata (``rosbag2_bagfile_information``) as rosbags can read it, and
+    what was corrected (empty: the file is read as it is). Raises ``ValueError`` for a
+    ``metadata.yaml`` that is not a rosbag2 one."""
+    import yaml
+
+    path = Path(path)
+    try:
+        doc = yaml.safe_load((path / "metadata.yaml").read_text())
+        meta = doc["rosbag2_bagfile_information"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError) as exc:
+        raise ValueError(f"{path}: unreadable rosbag2 metadata.yaml: {exc}") from None
+    fixes = []
+    if not meta.get("storage_identifier"):
+        files = [Path(f).name for f in meta.get("relative_file_paths") or []]
+        suffixes = {Path(f).suffix for f in files} or {
+            q.suffix for q in path.iterdir() if q.suffix in (".db3", ".mcap")}
+        by_suffix = {".db3": "sqlite3", ".mcap": "mcap"}
+        kinds = {by_suffix.get(x) for x in suffixes}
+        if len(kinds) != 1 or None in kinds:
+            raise ValueError(f"{path}: empty storage_identifier and files "
+                             f"{sorted(files) or 'none'}: cannot tell sqlite3 from mcap")
+        meta["storage_identifier"] = kinds.pop()
+        fixes.append(f"empty storage_identifier: {meta['storage_identifier']} (from the "
+                     f"files)")
+    for t in meta.get("topics_with_message_count") or []:
+        tm = t.get("topic_metadata") or {}
+        if not tm.get("serialization_format"):
+            tm["serialization_format"] = "cdr"
+            fixes.append(f"empty serialization_format of {tm.get('name')}: cdr")
+    return doc, fixes
+
+
+@contextlib.contextmanager
+def open_bag(path: Path | str):
+    """An open rosbags ``Reader`` of any rosbag2 directory ``ros2 bag`` reads (see the
+    module doc); ``reader.fixes`` lists the metadata corrections."""
+    import yaml
+    from rosbags.rosbag2 import Reader
+
+    path = Path(path)
+    doc, fixes = metadata_fixes(path)
+    with contextlib.ExitStack() as stack:
+        where = path
+        if fixes:  # rosbags refuses such metadata: a corrected copy beside links to the files
+            tmp = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="bag_io_")))
+            for f in doc["rosbag2_bagfile_information"].get("relative_file_paths") or []:
+                src = (path / Path(f).name).resolve()
+                try:
+                    os.symlink(src, tmp / src.name)
+                except OSError:  # no symlinks on this filesystem
+                    shutil.copy2(src, tmp / src.name)
+            (tmp / "metadata.yaml").write_text(yaml.safe_dump(doc, sort_keys=False))
+            where = tmp
+        reader = stack.enter_context(Reader(where))
+        reader.fixes = fixes
+        yield reader
+
+
+def _storage_connections(reader, topics=None) -> list:
+    # The storage files' own connections: rosbags matches the metadata's connections to
+    # the files' by their serialization format and QoS too, and old bags' metadata and
+    # files may disagree (an empty format in the .db3): those messages would be left out.
+    storages = getattr(reader.storage, "storages", None) or [reader.storage]
+    return [c for s in storages for c in s.connections if topics is None or c.topic in topics]
 
 
 @dataclass
@@ -40,19 +170,15 @@ class BagMessage:
 
 def bag_topics(path: Path | str) -> dict[str, str]:
     """Topic -> message type of a bag."""
-    from rosbags.rosbag2 import Reader
-
-    with Reader(Path(path)) as r:
+    with open_bag(path) as r:
         return {c.topic: c.msgtype for c in r.connections}
 
 
 def read_bag(path: Path | str, topics=None, *, start_ns: int | None = None) -> Iterator[BagMessage]:
     """Messages of a bag (optionally only ``topics``, only from log time ``start_ns``) in
     log-time order."""
-    from rosbags.rosbag2 import Reader
-
-    with Reader(Path(path)) as r:
-        conns = [c for c in r.connections if topics is None or c.topic in topics]
+    with open_bag(path) as r:
+        conns = _storage_connections(r, topics)
         if not conns:  # rosbags reads every topic when given no connection
             return
         for conn, stamp, raw in r.messages(connections=conns, start=start_ns):
@@ -64,6 +190,8 @@ class TopicInfo:
     msgtype: str
     count: int
     qos: list           # offered QoS profiles of metadata.yaml (rclpy QoSProfile), may be empty
+    msgdef: str = ""    # message definition recorded in the bag ("" when it has none)
+    digest: str = ""    # its type hash (RIHS01), "" when the bag has none
 
 
 @dataclass
@@ -71,19 +199,20 @@ class BagInfo:
     start_ns: int       # first log time
     end_ns: int         # last log time
     topics: dict[str, TopicInfo]
+    fixes: list = field(default_factory=list)   # metadata corrections (``metadata_fixes``)
 
 
 def bag_info(path: Path | str) -> BagInfo:
-    """Time span, topics, message counts and recorded QoS of a bag."""
-    from rosbags.rosbag2 import Reader
-
-    with Reader(Path(path)) as r:
+    """Time span, topics, message counts, recorded QoS and definitions of a bag."""
+    with open_bag(path) as r:
         topics = {c.topic: TopicInfo(c.msgtype, c.msgcount,
-                                     [_qos_to_rclpy(q) for q in c.ext.offered_qos_profiles])
+                                     [_qos_to_rclpy(q) for q in c.ext.offered_qos_profiles],
+                                     c.msgdef.data or "", c.digest or "")
                   for c in r.connections}
         if not r.message_count:
-            return BagInfo(0, 0, topics)
-        return BagInfo(r.start_time, r.end_time - 1, topics)  # rosbags' end_time is exclusive
+            return BagInfo(0, 0, topics, r.fixes)
+        # rosbags' end_time is exclusive
+        return BagInfo(r.start_time, r.end_time - 1, topics, r.fixes)
 
 
 def _qos_to_rclpy(q):
@@ -138,16 +267,68 @@ class BagWriter:
     def __exit__(self, *exc):
         self._writer.close()
 
-    def write(self, topic: str, msgtype: str, stamp_ns: int, msg, *, qos=()) -> None:
+    def write(self, topic: str, msgtype: str, stamp_ns: int, msg, *, qos=(),
+              source: TopicInfo | None = None) -> None:
         """Write ``msg`` (an rclpy message, or bytes already serialised) on ``topic``;
         ``qos`` (rclpy QoSProfiles, taken at a topic's first message) are recorded as
-        its offered QoS profiles."""
+        its offered QoS profiles. A type our typestore does not know (copied bytes) is
+        recorded with the definition and hash of ``source`` (the input bag's topic), or
+        with none, as older rosbag2 versions record every topic."""
         from rclpy.serialization import serialize_message
 
         conn = self._conns.get(topic)
         if conn is None:
-            conn = self._conns[topic] = self._writer.add_connection(
-                topic, msgtype, typestore=self._ts,
-                offered_qos_profiles=[_qos_from_rclpy(p) for p in qos])
+            conn = self._conns[topic] = self._add(topic, msgtype, qos, source)
         raw = msg if isinstance(msg, (bytes, bytearray, memoryview)) else serialize_message(msg)
         self._writer.write(conn, int(stamp_ns), bytes(raw))
+
+    def _add(self, topic, msgtype, qos, source):
+        offered = [_qos_from_rclpy(p) for p in qos]
+        try:
+            return self._writer.add_connection(topic, msgtype, typestore=self._ts,
+                                               offered_qos_profiles=offered)
+        except Exception:  # noqa: BLE001 - rosbags raises several kinds for an unknown type
+            pass
+        msgdef, digest = (source.msgdef, source.digest) if source else ("", "")
+        # rosbags insists on a hash; the metadata then records the source's ("" if none)
+        conn = self._writer.add_connection(topic, msgtype, msgdef=msgdef,
+                                           rihs01=digest or "unknown",
+                                           offered_qos_profiles=offered)
+        if not digest:
+            conns = self._writer.connections
+            conns[conns.index(conn)] = conn = conn._replace(digest="")
+        return conn
+
+
+# ----------------------------------------------------------------------- output
+def partial_dirs(target: Path | str) -> list[Path]:
+    """Leftovers of runs that were killed (SIGKILL, power loss) while writing ``target``."""
+    target = Path(target)
+    return sorted(target.parent.glob(f".{target.name}.partial-*"))
+
+
+@contextlib.contextmanager
+def atomic_output(target: Path | str, *, overwrite: bool = False):
+    """Yield a path, beside ``target``, that does not exist yet: write the output (a bag,
+    a folder) there; it is moved to ``target`` when the block ends without an exception
+    (an existing ``target`` replaced only then, and only with ``overwrite``). On any
+    exception, Ctrl-C included, the partial output is removed and ``target`` is untouched.
+    """
+    target = Path(target)
+    if (target.exists() or target.is_symlink()) and not overwrite:
+        raise FileExistsError(f"{target} exists (overwrite it explicitly)")
+    target.parent.mkdir(parents=True, exist_ok=True)
+    for stale in partial_dirs(target):    # a killed run's: nobody writes there any more
+        shutil.rmtree(stale, ignore_errors=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{target.name}.partial-", dir=target.parent))
+    try:
+        out = tmp / target.name   # rosbags names the storage file after its folder
+        yield out
+        if not out.exists():
+            raise FileNotFoundError(f"nothing was written for {target}")
+        if target.exists() or target.is_symlink():
+            old = tmp / ".replaced"
+            os.replace(target, old)   # then the rename below is one step on the same disk
+        os.replace(out, target)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

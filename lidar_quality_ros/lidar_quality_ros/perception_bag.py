@@ -8,11 +8,13 @@ functions the nodes use, so offline features are the online ones.
 """
 from __future__ import annotations
 
+import re
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Sequence
 
-from .bag_io import bag_topics, read_bag
+from .bag_io import UnknownTypes, bag_topics, read_bag
 
 #: Default topics of the reference perception bags (``reference_perception.cli``).
 DEFAULT_TOPICS = {
@@ -25,6 +27,62 @@ DEFAULT_TOPICS = {
 }
 HEAD_TOPIC = "/perception/head_{k}"
 HEAD_VARIANCE_TOPIC = "/perception/head_{k}/variance"
+_HEAD_KEY = re.compile(r"head_(\d+)(/variance)?")
+#: The topic keys (``--topic KEY=TOPIC``): the nodes' input names without ``input/``.
+TOPIC_KEYS = (*DEFAULT_TOPICS, "head_<k>", "head_<k>/variance")
+TOPIC_HELP = ("bag topic of an input, as KEY=TOPIC (repeatable), e.g. "
+              "points=/sensing/lidar/top/pointcloud; keys: " + ", ".join(TOPIC_KEYS))
+
+
+def check_topic_key(key: str) -> None:
+    """``ValueError`` naming the known keys unless ``key`` is one."""
+    if key not in DEFAULT_TOPICS and not _HEAD_KEY.fullmatch(key):
+        raise ValueError(f"unknown topic key {key!r} (known: {', '.join(TOPIC_KEYS)})")
+
+
+def topic_of(key: str, topics: dict[str, str] | None = None) -> str:
+    """The bag topic of ``key``: ``topics[key]`` if given, else its default name."""
+    check_topic_key(key)
+    if topics and key in topics:
+        return topics[key]
+    m = _HEAD_KEY.fullmatch(key)
+    if m:
+        return (HEAD_VARIANCE_TOPIC if m.group(2) else HEAD_TOPIC).format(k=int(m.group(1)))
+    return DEFAULT_TOPICS[key]
+
+
+def parse_topic_options(items: Sequence[str] | None) -> dict[str, str]:
+    """``["points=/a", ...]`` -> ``{"points": "/a"}``; ``ValueError`` for a malformed item
+    or an unknown key (naming the known keys)."""
+    out: dict[str, str] = {}
+    for item in items or ():
+        key, eq, topic = item.partition("=")
+        key, topic = key.strip(), topic.strip()
+        if not eq or not key or not topic.startswith("/") or len(topic) < 2:
+            raise ValueError(f"--topic {item!r}: expected KEY=/topic/name "
+                             f"(keys: {', '.join(TOPIC_KEYS)})")
+        check_topic_key(key)
+        if key in out and out[key] != topic:
+            raise ValueError(f"--topic {key} given twice ({out[key]}, {topic})")
+        out[key] = topic
+    return out
+
+
+def topic_option_type(item: str) -> tuple[str, str]:
+    """argparse ``type=`` for a repeated ``--topic KEY=TOPIC`` (a bad one is a usage
+    error naming the known keys); ``dict(args.topic)`` gives the mapping."""
+    import argparse
+
+    try:
+        return next(iter(parse_topic_options([item]).items()))
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+def add_topic_option(parser) -> None:
+    """The ``--topic KEY=TOPIC`` option of the bag reading / writing CLIs."""
+    parser.add_argument("--topic", action="append", default=[], type=topic_option_type,
+                        metavar="KEY=TOPIC", help=TOPIC_HELP)
 
 
 @dataclass
@@ -46,11 +104,12 @@ class PerceptionFrame:
             raise AttributeError(key) from None
 
 
-def head_count(bag: Path | str) -> int:
-    """Number of consecutive ``head_k`` topics in the bag."""
-    topics = bag_topics(bag)
+def head_count(bag: Path | str, topics: dict[str, str] | None = None) -> int:
+    """Number of consecutive ``head_k`` topics in the bag (names from ``topics``, else
+    the defaults)."""
+    present = bag_topics(bag)
     k = 0
-    while HEAD_TOPIC.format(k=k) in topics:
+    while topic_of(f"head_{k}", topics) in present:
         k += 1
     return k
 
@@ -61,26 +120,35 @@ def perception_frames(bag: Path | str, *, want=("points", "detections", "proposa
                       require: str = "points", window: int = 16) -> Iterator[PerceptionFrame]:
     """Yield one :class:`PerceptionFrame` per stamp of ``require``'s topic, in time order.
 
-    ``want`` names the keys of ``DEFAULT_TOPICS`` (or of ``topics``, which overrides them)
-    to decode; ``heads``: how many ``head_k`` (+ variance) topics to read (``None``: all
-    in the bag). Messages are grouped by header stamp, not log time; a frame is complete
-    once ``window`` newer stamps have been seen (recorders log a scan's outputs shortly
-    after it), which keeps memory bounded on long bags.
+    ``want`` names the keys of ``DEFAULT_TOPICS`` to decode; ``topics`` (key -> topic,
+    ``--topic`` options: ``parse_topic_options``) overrides their names and the heads';
+    ``heads``: how many ``head_k`` (+ variance) topics to read (``None``: all in the bag).
+    Topics whose type has no rclpy class here are left out with one warning per type.
+    Messages are grouped by header stamp, not log time; a frame is complete once
+    ``window`` newer stamps have been seen (recorders log a scan's outputs shortly after
+    it), which keeps memory bounded on long bags.
     """
-    names = {**DEFAULT_TOPICS, **(topics or {})}
-    unknown = set(want) - set(names)
-    if unknown:
-        raise ValueError(f"unknown frame keys {sorted(unknown)} (known: {sorted(names)})")
+    for key in (*want, require, *(topics or {})):
+        check_topic_key(key)
+    names = {k: topic_of(k, topics) for k in DEFAULT_TOPICS}
     present = bag_topics(bag)
     if names[require] not in present:
-        raise ValueError(f"{bag}: no topic {names[require]} (topics: {sorted(present)})")
-    k_heads = head_count(bag) if heads is None else int(heads)
+        raise ValueError(f"{bag}: no topic {names[require]} (topics: {sorted(present)}; "
+                         f"name it with --topic {require}=TOPIC)")
+    k_heads = head_count(bag, topics) if heads is None else int(heads)
     by_topic = {names[k]: k for k in want if names[k] in present}
     by_topic[names[require]] = require
     for k in range(k_heads):
-        by_topic[HEAD_TOPIC.format(k=k)] = ("head", k)
-        if HEAD_VARIANCE_TOPIC.format(k=k) in present:
-            by_topic[HEAD_VARIANCE_TOPIC.format(k=k)] = ("var", k)
+        by_topic[topic_of(f"head_{k}", topics)] = ("head", k)
+        if topic_of(f"head_{k}/variance", topics) in present:
+            by_topic[topic_of(f"head_{k}/variance", topics)] = ("var", k)
+    unknown = UnknownTypes(lambda t: print(f"{bag}: warning: {t}", file=sys.stderr),
+                           "not read")
+    readable = set(unknown.check_all({t: present[t] for t in by_topic if t in present}))
+    if names[require] not in readable:
+        raise ValueError(f"{bag}: topic {names[require]} has type {present[names[require]]}, "
+                         f"which is not available here")
+    by_topic = {t: k for t, k in by_topic.items() if t in readable}
 
     pending: dict[int, PerceptionFrame] = {}
     n = 0

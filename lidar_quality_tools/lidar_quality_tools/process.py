@@ -1,13 +1,22 @@
 """``process_bag``: the three quality nodes over recorded perception bags, offline (no DDS).
 
     process_bag --bag IN [--bag IN2 ...] --out OUT [--nodes lmd,lms,mimo]
+                [--topic points=/sensing/lidar/top/pointcloud ...]
                 [--param lmd.proposal_mode=exact ...] [--overwrite] [--no-progress]
 
-IN is a bag or a folder of bags (``perception_bag.resolve_bags``). A single bag gives the
-output bag OUT; several (or a folder) give OUT/<input name> each. The output bag (MCAP) holds
-every input message unchanged (topic, type, log time, recorded QoS) plus what the nodes
-publish for each frame, at the log time of the frame's cloud: ``/lmd/output/{detections,
+IN is a bag or a folder of bags (``perception_bag.resolve_bags``), any rosbag2 that ``ros2
+bag`` reads (``bag_io``: sqlite3 or MCAP, older metadata). A single bag gives the output bag
+OUT; several (or a folder) give OUT/<input name> each. The output bag (MCAP) holds every
+input message unchanged (topic, type, log time, recorded QoS; types unknown here, e.g. a
+driver's raw packets, copied as bytes with one warning per type) plus what the nodes publish
+for each frame, at the log time of the frame's cloud: ``/lmd/output/{detections,
 quality}``, ``/lms/output/{points,segments}``, ``/mimo/output/{detections,uncertainty}``.
+The input topics are the nodes' inputs under the reference perception's names
+(``/lidar/points``, ``/perception/detections`` ...); ``--topic KEY=TOPIC`` names another
+(keys: the nodes' input names without ``input/``: points, detections, proposals,
+segmentation, head_0, head_0/variance ...). Each output bag is written in a hidden folder
+beside it and moved into place when complete: a failed or interrupted run leaves no output
+bag (and needs no ``--overwrite`` the next time); ``--overwrite`` replaces a complete one.
 
 Settings are the nodes': the installed ``config/<node>_node.yaml`` with ``--param
 node.name=value`` overrides (YAML values), mapped to the pipelines' settings and models
@@ -19,12 +28,12 @@ come. A frame a node cannot process (missing input, undecodable or malformed mes
 an exception) is dropped for that node and counted by reason, never the run. Exit codes:
 0 done; 1 a node processed no frame of a bag (why on stderr: its topics are not in the
 bag, or every frame was dropped, with the reasons counted; the output bags are written
-all the same); 2 bad arguments, parameters or models (nothing written).
+all the same), or a bag could not be read (no output for it); 2 bad arguments, parameters
+or models (nothing written); 130 interrupted (the bag in progress not written).
 """
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import time
 from collections import Counter
@@ -34,8 +43,8 @@ from typing import Callable
 
 from lidar_quality_core.frame import FrameRejected
 from lidar_quality_core.time_sync import stamp_of_bytes
-from lidar_quality_ros.perception_bag import (DEFAULT_TOPICS, HEAD_TOPIC, HEAD_VARIANCE_TOPIC,
-                                              resolve_bags)
+from lidar_quality_ros.perception_bag import (add_topic_option, parse_topic_options,
+                                              resolve_bags, topic_of)
 
 NODES = {"lmd": "lmd_ros", "lms": "lms_ros", "mimo": "mimo_ros"}
 DET, QUAL = "vision_msgs/msg/Detection3DArray", "lidar_quality_msgs/msg/"
@@ -150,7 +159,7 @@ class Runner:
     run: Callable
 
 
-def _lmd(p: dict) -> Runner:
+def _lmd(p: dict, topics: dict) -> Runner:
     from lmd_ros.pipeline import LmdProcessor
 
     c = node_config("lmd", p)
@@ -158,34 +167,34 @@ def _lmd(p: dict) -> Runner:
     mode = c.settings.proposal_mode
     keys = ["points"] + (["detections"] if mode != "exact" else []) + (
         ["proposals"] if mode != "none" else [])
-    return Runner("lmd", {k: DEFAULT_TOPICS[k] for k in keys}, tuple(keys),
+    return Runner("lmd", {k: topic_of(k, topics) for k in keys}, tuple(keys),
                   lambda get: proc.process(get("points"), get("detections"), get("proposals")))
 
 
-def _lms(p: dict) -> Runner:
+def _lms(p: dict, topics: dict) -> Runner:
     from lms_ros.pipeline import LmsProcessor
 
     c = node_config("lms", p)
     proc = LmsProcessor(c.settings, _models("lms", c))
     # the segmentation cloud carries points and probabilities; separately: /lidar/points
     keys = ("points", "segmentation") if c.separate_probabilities else ("segmentation",)
-    return Runner("lms", {k: DEFAULT_TOPICS[k] for k in keys}, keys,
+    return Runner("lms", {k: topic_of(k, topics) for k in keys}, keys,
                   lambda get: proc.process(get(keys[0]),
                                            get("segmentation") if len(keys) == 2 else None))
 
 
-def _mimo(p: dict) -> Runner:
+def _mimo(p: dict, names: dict) -> Runner:
     from mimo_ros.pipeline import MimoProcessor, NoHeadError
 
     c = node_config("mimo", p)
     s = c.settings
     proc = MimoProcessor(s, _models("mimo", c), scores=c.output_scores)
     K = s.num_heads
-    topics = {f"head_{k}": HEAD_TOPIC.format(k=k) for k in range(K)}
+    topics = {f"head_{k}": topic_of(f"head_{k}", names) for k in range(K)}
     if c.use_variances:
-        topics.update({f"var_{k}": HEAD_VARIANCE_TOPIC.format(k=k) for k in range(K)})
+        topics.update({f"var_{k}": topic_of(f"head_{k}/variance", names) for k in range(K)})
     if s.use_points:
-        topics["points"] = DEFAULT_TOPICS["points"]
+        topics["points"] = topic_of("points", names)
 
     def run(get):
         undecodable = {}
@@ -211,9 +220,15 @@ def _mimo(p: dict) -> Runner:
     return Runner("mimo", topics, (), run)
 
 
-def build_runners(nodes=tuple(NODES), params: dict | None = None) -> list[Runner]:
+def build_runners(nodes=tuple(NODES), params: dict | None = None,
+                  topics: dict | None = None) -> list[Runner]:
     """Runners of ``nodes`` with their settings and models; ``params``: ``{"lmd.name":
-    value}`` or ``{"lmd": {"name": value}}``. Raises ``UsageError`` for anything bad."""
+    value}`` or ``{"lmd": {"name": value}}``; ``topics``: input key -> bag topic (``--topic``,
+    unnamed keys keep the default names). Raises ``UsageError`` for anything bad."""
+    try:
+        topics = parse_topic_options([f"{k}={v}" for k, v in (topics or {}).items()])
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     unknown = [n for n in nodes if n not in NODES]
     if unknown or not nodes:
         raise UsageError(f"unknown node(s) {unknown or '(none given)'}: choose from "
@@ -232,7 +247,7 @@ def build_runners(nodes=tuple(NODES), params: dict | None = None) -> list[Runner
     runners = []
     for n in nodes:
         try:
-            runners.append(make[n](node_parameters(n, per_node[n])))
+            runners.append(make[n](node_parameters(n, per_node[n]), topics))
         except UsageError:
             raise
         except (ValueError, TypeError) as exc:  # settings' validation, MergeConfig
@@ -244,11 +259,12 @@ def build_runners(nodes=tuple(NODES), params: dict | None = None) -> list[Runner
 @dataclass
 class _Frame:
     stamp_ns: int
+    points_topic: str
     msgs: dict = field(default_factory=dict)   # topic -> BagMessage
     decoded: dict = field(default_factory=dict)
 
     def log_ns(self) -> int:
-        cloud = self.msgs.get(DEFAULT_TOPICS["points"])
+        cloud = self.msgs.get(self.points_topic)
         return cloud.stamp_ns if cloud else min(m.stamp_ns for m in self.msgs.values())
 
     def get(self, topic: str):
@@ -349,25 +365,50 @@ def _check_out(out: Path, overwrite: bool) -> None:
 
 
 def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
+    """Process ``in_bag`` into ``out_bag`` (replaced if it exists, only once complete)."""
     from lidar_quality_core.progress import Progress
-    from lidar_quality_ros.bag_io import BagWriter, bag_info, read_bag
-    from lidar_quality_ros.qos import output_qos
+    from lidar_quality_ros.bag_io import UnknownTypes, atomic_output, bag_info
 
     t_start = time.perf_counter()
     info = bag_info(in_bag)
-    wanted = {t for r in runners for t in r.topics.values() if t in info.topics}
     warn = _Warnings(in_bag.name, progress)
+    for fix in info.fixes:
+        warn("bag", "metadata", f"note: metadata read with a correction: {fix}")
+    unknown = UnknownTypes(lambda text: warn("bag", "unknown_type", text),
+                           "copied to the output unchanged, not decoded")
+    known = set(unknown.check_all({t: i.msgtype for t, i in info.topics.items()}))
+    wanted = {t for r in runners for t in r.topics.values() if t in known}
     stats = {r.name: NodeStats() for r in runners}
     for r in runners:
-        absent = [t for t in r.topics.values() if t not in info.topics]
+        absent = [t for t in r.topics.values() if t not in known]
         if absent:
             stats[r.name].absent_topics = absent
-            warn(r.name, "absent_topics", f"topics not in the bag: {', '.join(absent)}")
+            undecodable = [t for t in absent if t in info.topics]
+            warn(r.name, "absent_topics", f"topics not in the bag: {', '.join(absent)}" + (
+                f" ({', '.join(undecodable)}: type not available here)" if undecodable else ""))
     bar = Progress(f"{in_bag.name}", max((info.topics[t].count for t in wanted), default=0),
                    enabled=progress)
-    if out_bag.exists():
-        shutil.rmtree(out_bag)
-    out_bag.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        with atomic_output(out_bag, overwrite=True) as tmp:
+            n_frames, copied, late = _write(in_bag, tmp, runners, info, wanted, stats, warn,
+                                            bar)
+    finally:
+        bar.close()
+    nodes = {name: st.summary() for name, st in stats.items()}
+    return {"in": str(in_bag), "out": str(out_bag), "frames": n_frames, "messages_copied": copied,
+            "messages_not_processed": dict(late),
+            "unknown_types": {ty: list(ts) for ty, ts in unknown.seen.items()},
+            "metadata_fixes": list(info.fixes),
+            "wall_s": round(time.perf_counter() - t_start, 3), "nodes": nodes,
+            "no_output": no_output_reasons(nodes, sorted(info.topics), dict(late))}
+
+
+def _write(in_bag: Path, out_bag: Path, runners, info, wanted, stats, warn, bar):
+    from lidar_quality_ros.bag_io import BagWriter, read_bag
+    from lidar_quality_ros.qos import output_qos
+
+    points_topic = next((r.topics["points"] for r in runners if "points" in r.topics),
+                        topic_of("points"))
     pending: dict[int, _Frame] = {}
     backlog: list = []                 # input messages read, not yet written (log order)
     last_done, late, copied, n_frames = None, Counter(), 0, 0
@@ -381,7 +422,8 @@ def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
             k = 0
             while k < len(backlog) and backlog[k].stamp_ns <= upto:
                 m = backlog[k]
-                w.write(m.topic, m.msgtype, m.stamp_ns, m.raw, qos=info.topics[m.topic].qos)
+                t = info.topics[m.topic]
+                w.write(m.topic, m.msgtype, m.stamp_ns, m.raw, qos=t.qos, source=t)
                 k += 1
             copied += k
             del backlog[:k]
@@ -414,18 +456,13 @@ def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
                             warn(r.name, why, f"{m.topic} message at log time {m.stamp_ns} "
                                               f"not processed ({why}): copied only")
                 else:
-                    pending.setdefault(stamp, _Frame(stamp)).msgs[m.topic] = m
+                    pending.setdefault(stamp, _Frame(stamp, points_topic)).msgs[m.topic] = m
                     flush(WINDOW)
             if not pending:
                 drain(float("inf"))
         flush(0)
         drain(float("inf"))
-    bar.close()
-    nodes = {name: st.summary() for name, st in stats.items()}
-    return {"in": str(in_bag), "out": str(out_bag), "frames": n_frames, "messages_copied": copied,
-            "messages_not_processed": dict(late),
-            "wall_s": round(time.perf_counter() - t_start, 3), "nodes": nodes,
-            "no_output": no_output_reasons(nodes, sorted(info.topics), dict(late))}
+    return n_frames, copied, late
 
 
 def no_output_reasons(nodes: dict, bag_topics: list, not_processed: dict | None = None) -> dict:
@@ -453,16 +490,19 @@ def no_output_reasons(nodes: dict, bag_topics: list, not_processed: dict | None 
 
 
 def process_bag(in_bag, out_bag, *, nodes=tuple(NODES), params: dict | None = None,
-                progress: bool = True, overwrite: bool = False) -> dict:
-    """Process one bag into ``out_bag``; returns the summary (JSON-able). Bad arguments
-    raise ``UsageError`` before anything is written."""
+                topics: dict | None = None, progress: bool = True,
+                overwrite: bool = False) -> dict:
+    """Process one bag into ``out_bag``; returns the summary (JSON-able). ``topics``: input
+    key -> bag topic (``--topic``). Bad arguments raise ``UsageError`` before anything is
+    written."""
     in_bag, out_bag = Path(in_bag), Path(out_bag)
     nodes = nodes.split(",") if isinstance(nodes, str) else nodes
     if not (in_bag / "metadata.yaml").exists():
         raise UsageError(f"{in_bag}: not a rosbag2 directory")
     _plan([in_bag], out_bag)
     _check_out(out_bag, overwrite)
-    return _run(in_bag, out_bag, build_runners(tuple(nodes), params), progress=progress)
+    return _run(in_bag, out_bag, build_runners(tuple(nodes), params, topics),
+                progress=progress)
 
 
 # ----------------------------------------------------------------------- command line
@@ -561,7 +601,9 @@ def main(argv=None) -> int:
                     f"{','.join(NODES)} (default: all)")
     ap.add_argument("--param", action="append", default=[], metavar="NODE.NAME=VALUE",
                     help="override a node parameter of its config YAML (repeatable)")
-    ap.add_argument("--overwrite", action="store_true", help="replace existing output bags")
+    add_topic_option(ap)
+    ap.add_argument("--overwrite", action="store_true", help="replace existing (complete) "
+                    "output bags")
     ap.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
     args = ap.parse_args(argv)
     try:
@@ -572,15 +614,25 @@ def main(argv=None) -> int:
         else:
             if args.out.exists() and not args.out.is_dir():
                 raise UsageError(f"{args.out} is a file: --out must be a folder for several bags")
-            if args.out.exists() and not args.overwrite:
-                raise UsageError(f"{args.out} exists: pass --overwrite or choose another --out")
             for _, o in pairs:
-                _check_out(o, True)
-        runners = build_runners(nodes, _parse_params(args.param))
+                _check_out(o, args.overwrite)
+        runners = build_runners(nodes, _parse_params(args.param), dict(args.topic))
     except UsageError as exc:
         ap.error(str(exc))
-    summaries = [_run(b, o, runners, progress=not args.no_progress) for b, o in pairs]
-    print(format_summary(summaries))
+    summaries, unreadable = [], []
+    for b, o in pairs:
+        try:
+            summaries.append(_run(b, o, runners, progress=not args.no_progress))
+        except KeyboardInterrupt:
+            print(f"\nprocess_bag: interrupted: no output bag written for {b} (nor after it)",
+                  file=sys.stderr)
+            return 130
+        except Exception as exc:  # noqa: BLE001 - a bag that cannot be read: said, not a traceback
+            unreadable.append(b)
+            print(f"process_bag: FAILED: cannot process {b}: {type(exc).__name__}: {exc} "
+                  f"(no output bag written for it)", file=sys.stderr)
+    if summaries:
+        print(format_summary(summaries))
     failed = [(s["in"], node, why) for s in summaries for node, why in s["no_output"].items()]
     for bag, node, why in failed:
         print(f"process_bag: FAILED: {node} processed no frame of {bag}: {why}",
@@ -588,7 +640,7 @@ def main(argv=None) -> int:
     if failed:
         print(f"process_bag: exit 1: {len({n for _, n, _ in failed})} node(s) without output "
               f"(leave a node out with --nodes)", file=sys.stderr)
-    return 1 if failed else 0
+    return 1 if failed or unreadable else 0
 
 
 if __name__ == "__main__":

@@ -2,10 +2,14 @@ import numpy as np
 import pytest
 from lidar_quality_core.pointcloud import create_xyz_cloud, xyz_intensity
 from lidar_quality_msgs.msg import BoxVariance, BoxVarianceArray
+from rclpy.qos import HistoryPolicy, ReliabilityPolicy
+from realbags import REAL_BAGS, real_bag
 from std_msgs.msg import Header
 from vision_msgs.msg import Detection3D, Detection3DArray
 
-from lidar_quality_ros.bag_io import BagWriter, bag_topics, message_class, read_bag
+from lidar_quality_ros.bag_io import (BagWriter, UnknownTypes, atomic_output, bag_info,
+                                      bag_topics, known_type, message_class, partial_dirs,
+                                      read_bag)
 
 
 @pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
@@ -52,3 +56,189 @@ def test_message_class_and_bad_storage(tmp_path):
     assert message_class("vision_msgs/msg/Detection3DArray") is Detection3DArray
     with pytest.raises(ValueError, match="storage"):
         BagWriter(tmp_path / "x", storage="zip")
+
+
+# --------------------------------------------------------------------------- any bag
+def humble_metadata(bag, *, storage_identifier="", serialization_format="", db_format=None):
+    """Rewrite ``bag``'s metadata.yaml as older rosbag2 versions wrote it: version 5, the
+    QoS profiles as one YAML string with numeric policies, no type hashes; with an empty
+    ``storage_identifier`` and topic ``serialization_format`` (as in recordings we were
+    given). ``db_format``: also set the sqlite3 file's own topic format (old recorders
+    left it empty there too)."""
+    import sqlite3
+
+    import yaml
+
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    qos = ("- history: 1\n  depth: 5\n  reliability: 2\n  durability: 2\n  deadline:\n"
+           "    sec: 9223372036\n    nsec: 854775807\n  lifespan:\n    sec: 9223372036\n"
+           "    nsec: 854775807\n  liveliness: 1\n  liveliness_lease_duration:\n"
+           "    sec: 9223372036\n    nsec: 854775807\n  avoid_ros_namespace_conventions: false")
+    old = {"version": 5, "storage_identifier": storage_identifier,
+           "duration": meta["duration"], "starting_time": meta["starting_time"],
+           "message_count": meta["message_count"],
+           "topics_with_message_count": [
+               {"topic_metadata": {"name": t["topic_metadata"]["name"],
+                                   "type": t["topic_metadata"]["type"],
+                                   "serialization_format": serialization_format,
+                                   "offered_qos_profiles": qos},
+                "message_count": t["message_count"]}
+               for t in meta["topics_with_message_count"]],
+           "compression_format": "", "compression_mode": "",
+           "relative_file_paths": meta["relative_file_paths"], "files": meta["files"]}
+    (bag / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": old},
+                                                      sort_keys=False))
+    if db_format is not None:
+        (db,) = bag.glob("*.db3")
+        with sqlite3.connect(db) as c:
+            c.execute("UPDATE topics SET serialization_format = ?", (db_format,))
+
+
+def _small_bag(path, storage):
+    h = Header(frame_id="lidar")
+    with BagWriter(path, storage=storage) as w:
+        for k in range(3):
+            h.stamp.sec = k
+            cloud = create_xyz_cloud(h, np.full((4, 3), k, np.float32))
+            w.write("/pts", "sensor_msgs/msg/PointCloud2", 100 + k, cloud)
+            w.write("/dets", "vision_msgs/msg/Detection3DArray", 100 + k,
+                    Detection3DArray(header=h))
+    return [(m.topic, m.stamp_ns, m.raw) for m in read_bag(path)]
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+@pytest.mark.parametrize("empty", ["storage_identifier", "serialization_format", "both", "none"])
+def test_older_metadata_is_read(tmp_path, storage, empty):
+    """Version 5 metadata with a QoS string, an empty storage identifier (inferred from the
+    files) and / or an empty serialization format (CDR): read as rosbag2 reads it, the
+    bag itself unchanged."""
+    from rosbags.rosbag2 import Reader
+    from rosbags.rosbag2.errors import ReaderError
+
+    bag = tmp_path / "b"
+    before = _small_bag(bag, storage)
+    ident = "" if empty in ("storage_identifier", "both") else storage
+    fmt = "" if empty in ("serialization_format", "both") else "cdr"
+    humble_metadata(bag, storage_identifier=ident, serialization_format=fmt,
+                    db_format=fmt if storage == "sqlite3" else None)
+    text = (bag / "metadata.yaml").read_text()
+    if empty != "none":
+        with pytest.raises(ReaderError), Reader(bag):    # what rosbags alone says
+            pass
+    info = bag_info(bag)
+    assert sorted(info.fixes) == sorted(
+        (["empty storage_identifier: " + storage + " (from the files)"] if not ident else [])
+        + ([f"empty serialization_format of {t}: cdr" for t in ("/pts", "/dets")]
+           if not fmt else []))
+    assert {t: (i.msgtype, i.count) for t, i in info.topics.items()} == {
+        "/pts": ("sensor_msgs/msg/PointCloud2", 3), "/dets": ("vision_msgs/msg/Detection3DArray", 3)}
+    qos = info.topics["/pts"].qos[0]      # the recorded string, numeric policies
+    assert (qos.depth, qos.reliability, qos.history) == (
+        5, ReliabilityPolicy.BEST_EFFORT, HistoryPolicy.KEEP_LAST)
+    assert (info.start_ns, info.end_ns) == (100, 102)
+    assert [(m.topic, m.stamp_ns, m.raw) for m in read_bag(bag)] == before
+    assert [m.stamp_ns for m in read_bag(bag, {"/dets"}, start_ns=101)] == [101, 102]
+    assert bag_topics(bag) == {"/pts": "sensor_msgs/msg/PointCloud2",
+                               "/dets": "vision_msgs/msg/Detection3DArray"}
+    assert (bag / "metadata.yaml").read_text() == text       # never changed
+    assert sorted(p.name for p in bag.iterdir()) == sorted(
+        ["metadata.yaml", f"b.{'db3' if storage == 'sqlite3' else 'mcap'}"])
+
+
+def test_unreadable_storage_identifier_is_a_clear_error(tmp_path):
+    bag = tmp_path / "b"
+    _small_bag(bag, "mcap")
+    humble_metadata(bag)
+    (bag / "b.mcap").rename(bag / "b.data")
+    meta = bag / "metadata.yaml"
+    meta.write_text(meta.read_text().replace("b.mcap", "b.data"))
+    with pytest.raises(ValueError, match="cannot tell sqlite3 from mcap"):
+        bag_info(bag)
+
+
+class _Log(list):
+    def __call__(self, text):
+        self.append(text)
+
+
+def test_unknown_types_are_copied_raw_and_warned_once_per_type(tmp_path):
+    """A driver's packet type (no rclpy class, not in our typestore): written and read as
+    bytes, recorded without a definition; one warning per type, naming its topics."""
+    raw = [bytes([0, 1, 0, 0]) + bytes(range(k, k + 40)) for k in range(3)]
+    with BagWriter(tmp_path / "b") as w:
+        for k, r in enumerate(raw):
+            w.write("/velodyne_packets", "velodyne_msgs/msg/VelodyneScan", 10 + k, r)
+            w.write("/rear/velodyne_packets", "velodyne_msgs/msg/VelodyneScan", 10 + k, r)
+            w.write("/pandar_packets", "pandar_msgs/msg/PandarScan", 10 + k, r)
+            w.write("/pts", "sensor_msgs/msg/PointCloud2", 10 + k,
+                    create_xyz_cloud(Header(), np.zeros((2, 3), np.float32)))
+    info = bag_info(tmp_path / "b")
+    assert info.topics["/velodyne_packets"].msgtype == "velodyne_msgs/msg/VelodyneScan"
+    assert info.topics["/velodyne_packets"].digest == ""
+    assert [m.raw for m in read_bag(tmp_path / "b", {"/pandar_packets"})] == raw
+    assert not known_type("velodyne_msgs/msg/VelodyneScan") and known_type(
+        "sensor_msgs/msg/PointCloud2")
+    log = _Log()
+    unknown = UnknownTypes(log, "skipped")
+    playable = unknown.check_all({t: i.msgtype for t, i in info.topics.items()})
+    assert playable == ["/pts"]
+    assert len(log) == 2 and "/velodyne_packets, /rear/velodyne_packets" in log[0]
+    assert "pandar_msgs/msg/PandarScan" in log[1] and log[1].endswith("skipped")
+    assert not unknown.check("/velodyne_packets", "velodyne_msgs/msg/VelodyneScan")
+    assert not unknown.check("/third", "velodyne_msgs/msg/VelodyneScan")
+    assert len(log) == 2                        # still one warning per type
+    assert unknown.seen["velodyne_msgs/msg/VelodyneScan"][-1] == "/third"
+    # copied again (as process_bag copies input topics), with the source's record
+    with BagWriter(tmp_path / "c", storage="sqlite3") as w:
+        for m in read_bag(tmp_path / "b"):
+            w.write(m.topic, m.msgtype, m.stamp_ns, m.raw, source=info.topics[m.topic])
+    assert [m.raw for m in read_bag(tmp_path / "c")] == [m.raw for m in read_bag(tmp_path / "b")]
+
+
+def test_atomic_output(tmp_path):
+    target = tmp_path / "out"
+    with pytest.raises(RuntimeError, match="midway"):
+        with atomic_output(target) as tmp:
+            with BagWriter(tmp) as w:
+                w.write("/a", "std_msgs/msg/Header", 1, Header())
+                raise RuntimeError("midway")
+    assert list(tmp_path.iterdir()) == []       # nothing at the target, nothing beside it
+    with atomic_output(target) as tmp:
+        with BagWriter(tmp) as w:
+            w.write("/a", "std_msgs/msg/Header", 1, Header())
+        assert not target.exists()
+    assert bag_topics(target) == {"/a": "std_msgs/msg/Header"}
+    assert (target / "out.mcap").exists() and list(tmp_path.iterdir()) == [target]
+    with pytest.raises(FileExistsError):
+        with atomic_output(target):
+            pass
+    with pytest.raises(KeyboardInterrupt):      # a failed replacement keeps the old one
+        with atomic_output(target, overwrite=True) as tmp:
+            tmp.mkdir()
+            raise KeyboardInterrupt
+    assert bag_topics(target) == {"/a": "std_msgs/msg/Header"}
+    with atomic_output(target, overwrite=True) as tmp:
+        with BagWriter(tmp) as w:
+            w.write("/b", "std_msgs/msg/Header", 1, Header())
+    assert bag_topics(target) == {"/b": "std_msgs/msg/Header"}
+    assert list(tmp_path.iterdir()) == [target]
+    # a killed run's leftover is hidden beside the target and removed by the next run
+    (tmp_path / ".out.partial-x").mkdir()
+    assert partial_dirs(target) == [tmp_path / ".out.partial-x"]
+    with atomic_output(target, overwrite=True) as tmp:
+        tmp.mkdir()
+    assert list(tmp_path.iterdir()) == [target]
+
+
+@pytest.mark.parametrize("name", sorted(REAL_BAGS))
+def test_real_recordings_are_read(name):
+    """The driver's genuine recordings (older metadata, unknown packet types)."""
+    bag = real_bag(name)
+    topic, msgtype, count, fixes = REAL_BAGS[name]
+    info = bag_info(bag)
+    assert info.fixes == fixes
+    assert {t: (i.msgtype, i.count) for t, i in info.topics.items()} == {topic: (msgtype, count)}
+    msgs = list(read_bag(bag))
+    assert len(msgs) == count and all(len(m.raw) > 100_000 for m in msgs)
+    assert [m.stamp_ns for m in msgs] == sorted(m.stamp_ns for m in msgs)
+    assert (msgs[0].stamp_ns, msgs[-1].stamp_ns) == (info.start_ns, info.end_ns)

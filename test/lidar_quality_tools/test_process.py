@@ -9,18 +9,22 @@ import numpy as np
 import pytest
 from lidar_quality_core.meta_model import MetaModels
 from lidar_quality_ros.bag_io import BagWriter, bag_info, read_bag
-from lidar_quality_ros.perception_bag import perception_frames
+from lidar_quality_ros.perception_bag import DEFAULT_TOPICS, HEAD_TOPIC, perception_frames
 from lidar_quality_ros.qos import SENSOR_QOS
-from lidar_quality_tools.process import OUTPUTS, main, process_bag
+from lidar_quality_tools.process import OUTPUTS, Drop, Runner, _run, main, process_bag
 from lmd_ros.pipeline import LmdProcessor, LmdSettings, default_model_paths
 from node_shell_checks import executable
 from perception_bags import simulated_perception_bags
+from realbags import REAL_BAGS, real_bag
 from rclpy.serialization import deserialize_message, serialize_message
 from reference_perception.cli import Perception
 from sensor_msgs.msg import PointCloud2
 
 N_FRAMES = 3
 OUT_TOPICS = [t for outs in OUTPUTS.values() for t, _ in outs]
+TOPICS = {**{k: t for k, t in DEFAULT_TOPICS.items() if k not in ("points_gt", "gt_objects")},
+          **{f"head_{k}{v}": HEAD_TOPIC.format(k=k) + v for k in range(2)
+             for v in ("", "/variance")}}
 
 
 @pytest.fixture(scope="module")
@@ -278,3 +282,90 @@ def test_installed_executable(bag, tmp_path):
                           str(bag), "--out", str(out)], capture_output=True, text=True,
                          timeout=120)
     assert bad.returncode == 2 and "exists" in bad.stderr
+
+
+# --------------------------------------------------------------------------- any bag
+@pytest.mark.parametrize("name", sorted(REAL_BAGS))
+def test_real_recordings_copied_through_with_the_no_frame_outcome(name, tmp_path, capsys):
+    """A driver's raw-packet recording (older metadata, a type unknown here): no traceback;
+    the packets are copied to the output unchanged, the type reported once, and every node
+    ends with "its input topics are not in the bag" (exit 1, as documented)."""
+    bag = real_bag(name)
+    topic, msgtype, count, _ = REAL_BAGS[name]
+    out = tmp_path / "out"
+    assert main(["--bag", str(bag), "--out", str(out), "--no-progress"]) == 1
+    err = capsys.readouterr().err
+    assert "Traceback" not in err
+    assert err.count(f"message type {msgtype}") == 1 and topic in err
+    for node in ("lmd", "lms", "mimo"):
+        assert f"FAILED: {node} processed no frame of {bag}: its input topics are not in " \
+               "the bag" in err
+    assert messages(out) == messages(bag)           # the packets, byte for byte
+    assert bag_info(out).topics[topic].msgtype == msgtype
+    summary = process_bag(bag, tmp_path / "again", nodes="mimo", progress=False)
+    assert summary["unknown_types"] == {msgtype: [topic]}
+    assert summary["messages_copied"] == count and summary["frames"] == 0
+
+
+AUTOWARE = {"points": "/sensing/lidar/top/pointcloud",
+            "detections": "/perception/object_recognition/detection/objects",
+            "proposals": "/perception/object_recognition/detection/proposals",
+            "segmentation": "/perception/segmentation/pointcloud",
+            **{f"head_{k}{v}": f"/ensemble/member_{k}{v}" for k in range(2)
+               for v in ("", "/variance")}}
+
+
+def test_topic_options_give_the_outputs_of_the_default_names(bag, tmp_path, capsys):
+    """Every input under a user's own names, named with --topic: the same outputs."""
+    src = tmp_path / "autoware"
+    renamed_copy(bag, src, {t: AUTOWARE[k] for k, t in TOPICS.items()})
+    assert main(["--bag", str(bag), "--out", str(tmp_path / "ref"), "--no-progress"]) == 0
+    argv = ["--bag", str(src), "--out", str(tmp_path / "out"), "--no-progress"]
+    assert main(argv + [a for k, t in AUTOWARE.items() for a in ("--topic", f"{k}={t}")]) == 0
+    for t in OUT_TOPICS:   # decoded: CDR alignment padding is not always zeroed
+        out, ref = decoded(tmp_path / "out", t), decoded(tmp_path / "ref", t)
+        assert len(out) == len(ref) == N_FRAMES
+        assert all(a == b or repr(a) == repr(b) for a, b in zip(out, ref)), t   # NaN too
+    capsys.readouterr()
+    with pytest.raises(SystemExit) as e:
+        main(["--bag", str(src), "--out", str(tmp_path / "x"), "--topic", "cloud=/a"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "unknown topic key 'cloud'" in err
+    assert "points, points_gt, gt_objects, detections, proposals, segmentation, head_<k>, " \
+           "head_<k>/variance" in err
+    with pytest.raises(SystemExit) as e:
+        main(["--bag", str(src), "--out", str(tmp_path / "x"), "--topic", "points"])
+    assert e.value.code == 2 and "expected KEY=/topic/name" in capsys.readouterr().err
+    assert not (tmp_path / "x").exists()
+
+
+def _failing_runner(after: int):
+    """An LMD runner interrupted (Ctrl-C) at its frame ``after``."""
+    seen = []
+
+    def run(get):
+        seen.append(get("points"))
+        if len(seen) > after:
+            raise KeyboardInterrupt
+        raise Drop("missing_input")
+
+    return Runner("lmd", {"points": "/lidar/points"}, ("points",), run)
+
+
+def test_failed_run_leaves_no_output_and_needs_no_overwrite(bag, tmp_path, capsys):
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        _run(bag, out, [_failing_runner(after=1)], progress=False)
+    assert list(tmp_path.iterdir()) == []          # nothing at the target nor beside it
+    argv = ["--bag", str(bag), "--out", str(out), "--nodes", "mimo", "--no-progress"]
+    assert main(argv) == 0                          # no --overwrite: there was nothing
+    done = messages(out)
+    with pytest.raises(KeyboardInterrupt):          # a failed replacement keeps it
+        _run(bag, out, [_failing_runner(after=2)], progress=False)
+    assert messages(out) == done and list(tmp_path.iterdir()) == [out]
+    # several bags: OUT/<name> each, OUT itself may exist (a failed run's folder)
+    (tmp_path / "many").mkdir()
+    assert main(["--bag", str(bag.parent), "--out", str(tmp_path / "many"), "--nodes", "mimo",
+                 "--no-progress"]) == 0
+    assert [m[:3] for m in messages(tmp_path / "many" / bag.name)] == [m[:3] for m in done]
+    capsys.readouterr()
