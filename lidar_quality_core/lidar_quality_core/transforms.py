@@ -30,10 +30,11 @@ from typing import Callable
 import numpy as np
 
 from .boxes import TILT_TOLERANCE_DEG, quaternion_to_rpy
+from .frame import FrameRejected
 
 __all__ = ["Transform", "TransformError", "ConnectivityError", "ExtrapolationError",
            "TransformBuffer", "Lookup", "transform_from_msg", "add_tf_message", "stamp_ns",
-           "normalize_frame"]
+           "normalize_frame", "NoTransformError", "input_transforms"]
 
 #: ``lookup(target, source, stamp_ns) -> Transform`` (a buffer's bound method, or any callable)
 Lookup = Callable[[str, str, "int | None"], "Transform"]
@@ -222,6 +223,13 @@ class ExtrapolationError(TransformError):
     """The frames are connected, but a timestamped edge has no sample near the stamp."""
 
 
+class NoTransformError(FrameRejected):
+    """A frame dropped because an input cannot be brought into the computation frame."""
+
+    reason = "no_transform"
+    cause = "no_transform"
+
+
 def normalize_frame(frame: str) -> str:
     """tf2 ignores a leading '/' (ROS 1 names)."""
     return frame[1:] if frame.startswith("/") else frame
@@ -351,11 +359,12 @@ class TransformBuffer:
             return Transform.identity()
         with self._lock:
             known = set(self._edges) | {e.parent for e in self._edges.values()}
-            for f in (target, source):
-                if f not in known:
-                    raise ConnectivityError(
-                        target, source, stamp_ns, f"frame {f!r} is unknown (known frames: "
-                        f"{', '.join(sorted(known)) or 'none, no transform received'})")
+            unknown = [f for f in (source, target) if f not in known]
+            if unknown:
+                raise ConnectivityError(
+                    target, source, stamp_ns, " and ".join(f"frame {f!r}" for f in unknown)
+                    + f" {'is' if len(unknown) == 1 else 'are'} unknown (known frames: "
+                    f"{', '.join(sorted(known)) or 'none, no transform received'})")
             up_s, up_t = self._chain(source), self._chain(target)
             common = next((f for f in up_s if f in set(up_t)), None)
             if common is None:
@@ -420,3 +429,37 @@ def add_tf_message(buffer: TransformBuffer, msg, static: bool) -> list[str]:
         except ValueError as exc:
             bad.append(f"{ts.header.frame_id!r} -> {ts.child_frame_id!r}: {exc}")
     return bad
+
+
+def input_transforms(target: str, inputs: dict, lookup: Lookup | None, *,
+                     fix: str = "") -> tuple[dict, list[str]]:
+    """``({name: T_target_input}, notes)`` for the inputs (name -> message with a header, or
+    None) whose ``frame_id`` differs from ``target``, each looked up at its own stamp.
+    An input in ``target`` needs nothing; an empty ``frame_id`` (on either side) cannot be
+    looked up and is taken as ``target`` (a note says so). Raises :class:`NoTransformError`
+    naming the input, both frames and the stamp when ``lookup`` has no transform (or is
+    None); ``fix`` is appended to its text."""
+    out, notes = {}, []
+    target = normalize_frame(target or "")
+    for name, msg in inputs.items():
+        header = getattr(msg, "header", None)
+        if header is None:
+            continue
+        src = normalize_frame(header.frame_id or "")
+        if src == target:
+            continue
+        if not src or not target:
+            notes.append(f"{name} frame_id {src!r} vs {target!r}: an empty frame_id cannot be "
+                         "transformed, taken as the same frame")
+            continue
+        t_ns = stamp_ns(header.stamp)
+        if lookup is None:
+            raise NoTransformError(f"{name} is in {src!r}, the computation frame is {target!r}, "
+                                   f"and no transform source is set{fix}")
+        try:
+            t = lookup(target, src, t_ns)
+        except TransformError as exc:
+            raise NoTransformError(f"{name}: {exc}{fix}") from None
+        if not t.is_identity(0.0):
+            out[name] = t
+    return out, notes

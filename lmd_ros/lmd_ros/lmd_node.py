@@ -35,16 +35,25 @@ deserialization of a reference-detector proposal array costs 100-300 ms, the who
 frame ~12 ms), and ``output/detections`` is published as bytes built from them (every
 field copied, scores replaced); little-endian CDR only (what ROS 2 writes on x86 / ARM),
 other bytes are dropped and counted (``undecodable_input``). A malformed cloud (or one without an
-intensity field) drops the frame (counted as ``malformed_cloud``); invalid boxes and a
-frame_id mismatch between the inputs raise throttled warnings, the frame is processed.
+intensity field) drops the frame (counted as ``malformed_cloud``); invalid boxes raise
+throttled warnings, the frame is processed.
+
+Frames: with ``transform_inputs`` (default) the node listens to ``/tf_static`` and ``/tf``
+(``lidar_quality_ros.tf_listener``, tf2's QoS) and the processor moves detections and
+proposals in another frame into the cloud's; a frame whose transform is missing is
+dropped (``dropped.no_transform``, a warning naming the frames and the stamp). With
+``transform_inputs: false`` a frame_id mismatch is a throttled warning and the frame is
+processed as if the frames were equal.
 """
 from __future__ import annotations
 
 
 from lidar_quality_core.detection_cdr import decode_detection_array
+from lidar_quality_core.transforms import TransformBuffer
 from lidar_quality_msgs.msg import DetectionQualityArray
 from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.runner import run_node
+from lidar_quality_ros.tf_listener import TfListener
 from sensor_msgs.msg import PointCloud2
 from vision_msgs.msg import Detection3DArray
 from visualization_msgs.msg import MarkerArray
@@ -63,7 +72,14 @@ class LmdNode(QualityNode):
             raise ValueError(f"invalid parameter: {exc}") from None
         self.settings = p.settings
         self.models = load_models(p, warn=self.get_logger().warning)
-        self.processor = LmdProcessor(p.settings, self.models, min_confidence=p.min_confidence)
+        self.tf = None
+        if p.transform_inputs:
+            self.tf = TfListener(self, TransformBuffer(
+                extrapolation_tolerance_s=p.transform_tolerance),
+                on_bad=lambda text: self.warn_input("tf", text))
+        self.processor = LmdProcessor(p.settings, self.models, min_confidence=p.min_confidence,
+                                      transforms=self.tf.buffer if self.tf else None,
+                                      transform_inputs=p.transform_inputs)
 
         mode = p.settings.proposal_mode
         topics = [(PointCloud2, "input/points")]

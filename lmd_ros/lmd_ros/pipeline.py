@@ -36,6 +36,17 @@ the models' domain). Both are reported (issue ``"scores"``), with the range seen
 Tilted boxes (|roll| or |pitch| > ``boxes.TILT_TOLERANCE_DEG``): features take the box as
 upright with its yaw (the box is kept and scored); reported (issue ``"roll_pitch"``).
 
+Frames (``LmdParameters.transform_inputs``, default true): the features are computed in
+the cloud's frame. Detections and proposals whose ``frame_id`` differs from the cloud's are
+moved into it (``transforms.Transform.apply_boxes``: centre by the full transform, yaw plus
+the transform's yaw; a tilting transform is reported, issue ``"transform"``) with the
+transform at their own stamp from the processor's ``transforms`` (a
+``transforms.TransformBuffer`` or any ``lookup(target, source, stamp_ns)``). No transform:
+the frame is dropped (``transforms.NoTransformError``, counted as ``no_transform``). The
+outputs keep the input detections' header and boxes (same order, same ids): only the
+computation happens in the cloud's frame. With ``transform_inputs`` false the frames are
+taken as equal (issue ``"frame_id"``).
+
 The cloud must have x, y, z and an intensity field (``intensity``, ``reflectance`` or
 ``i``): the reflectance statistics are model inputs, so a cloud without one is refused
 (:class:`~lidar_quality_core.pointcloud.CloudFormatError`), like a malformed one.
@@ -54,6 +65,7 @@ from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import check_fields, group, param
 from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
+from lidar_quality_core.transforms import Transform, input_transforms
 from lidar_quality_core.lmd import features
 from lidar_quality_core.lmd.proposal_sets import nms_preimages
 
@@ -120,6 +132,14 @@ class LmdParameters:
     publish_markers: bool = param(
         True, "Publish output/markers (boxes coloured by confidence; built only while someone "
         "subscribes).")
+    transform_inputs: bool = param(
+        True, "Transform input/detections and input/proposals into input/points' frame "
+        "(/tf_static, /tf) when their frame_id differs; a frame whose transform is missing is "
+        "dropped (counted as no_transform, with a warning naming the frames). false: compute "
+        "as if the frames were equal (warning frame_id).")
+    transform_tolerance: float = param(
+        0.05, "Seconds a stamp may lie outside the samples of a moving (/tf) transform and "
+        "still take the nearest one (static transforms hold at any time).", min_value=0.0)
     classifier_path: str = model_path_param(
         "classifier", "confidence", "models/lmd/lmd_<proposal_mode>_classifier.joblib")
     regressor_path: str = model_path_param(
@@ -163,8 +183,11 @@ class LmdFrame:
     header: object = None        # header of the scored boxes' array (output header)
     source: object = None        # Detection3DArray or DecodedDetections they come from
     rows: np.ndarray | None = None  # (n,) their rows in ``source``
-    #: input problems seen while computing the features (``"scores"``, ``"roll_pitch"``)
+    #: input problems seen while computing the features (``"scores"``, ``"roll_pitch"``,
+    #: ``"transform"``)
     issues: dict = field(default_factory=dict)
+    #: header of the frame ``detections.boxes`` are in: the cloud's when they were moved
+    boxes_header: object = None
 
 
 def take_detections(arr: DetectionArrays, idx) -> DetectionArrays:
@@ -243,11 +266,23 @@ def _messages(dets, rows) -> list | None:
     return [msgs[i] for i in rows.tolist()]
 
 
-def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettings) -> LmdFrame:
+def _moved(arr: DetectionArrays, t: Transform | None, name: str, notes: list) -> DetectionArrays:
+    """``arr`` with its boxes in the cloud's frame (a copy; the input stays as decoded)."""
+    if t is None:
+        return arr
+    boxes, issue = t.apply_boxes(arr.boxes)
+    if issue:
+        notes.append(f"{name}: {issue}")
+    return replace(arr, boxes=boxes)
+
+
+def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettings, *,
+                   transforms: dict | None = None) -> LmdFrame:
     """Features of one frame from its messages (PointCloud2, Detection3DArray,
     Detection3DArray; the two arrays may also come as ``detection_cdr.DecodedDetections``).
     ``detections_msg`` is unused (may be None) in exact mode, ``proposals_msg`` is None in
-    none mode.
+    none mode. ``transforms``: ``{"input/detections" | "input/proposals": Transform}`` into
+    the cloud's frame, for inputs in another frame (``transforms.input_transforms``).
 
     Raises ``CloudFormatError`` for a malformed cloud or one without intensity,
     ``ValueError`` for a missing input of the mode.
@@ -264,8 +299,11 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
                                "i): the reflectance features need it")
     if mode != "none" and proposals_msg is None:
         raise ValueError(f'proposal mode "{mode}" needs the proposals')
+    transforms = transforms or {}
+    scores_notes, tilt_notes, moved_notes = [], [], []
     props = _arrays(proposals_msg) if mode != "none" else None
-    scores_notes, tilt_notes = [], []
+    if props is not None:
+        props = _moved(props, transforms.get("input/proposals"), "input/proposals", moved_notes)
     prop_scores = None if props is None else props.scores
     if props is not None:
         bad = _unit_range_violations(props)
@@ -286,7 +324,8 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
     else:
         if detections_msg is None:
             raise ValueError(f'proposal mode "{mode}" needs the detections')
-        dets = _arrays(detections_msg)
+        dets = _moved(_arrays(detections_msg), transforms.get("input/detections"),
+                      "input/detections", moved_notes)
         source, rows = detections_msg, np.arange(len(dets))
         kw = (dict(iou_threshold=settings.iou_threshold,
                    proposal_score_threshold=settings.proposal_score_threshold)
@@ -316,8 +355,12 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
         issues["scores"] = "; ".join(scores_notes)
     if tilt_notes:
         issues["roll_pitch"] = "; ".join(tilt_notes)
+    if moved_notes:
+        issues["transform"] = "; ".join(moved_notes)
+    moved = ("input/proposals" if mode == "exact" else "input/detections") in transforms
     return LmdFrame(dets, _messages(source, rows), X, valid, _n_finite(xyz, inten),
-                    source.header, source, rows, issues)
+                    source.header, source, rows, issues,
+                    cloud_msg.header if moved else source.header)
 
 
 @dataclass
@@ -332,7 +375,7 @@ class LmdOutputs:
     quality: object            # DetectionQualityArray (every scored box, kept or not)
     markers: object = None     # MarkerArray, or None when not asked for
     #: input problems by key (``"detections"``, ``"frame_id"``, ``"scores"``,
-    #: ``"roll_pitch"``); absent key = no problem
+    #: ``"roll_pitch"``, ``"transform"``); absent key = no problem
     issues: dict = field(default_factory=dict)
 
     @property
@@ -350,10 +393,15 @@ class LmdProcessor:
 
     ``models``: a ``MetaModels`` loaded with ``settings.feature_names()``.
     ``min_confidence``: detections with a confidence below it (or NaN, when > 0) are not
-    published on output/detections; 0 keeps all.
+    published on output/detections; 0 keeps all. ``transform_inputs``: move detections and
+    proposals in another frame into the cloud's with ``transforms`` (a
+    ``transforms.TransformBuffer``, a ``lookup(target, source, stamp_ns)`` callable, or
+    None: no transform known, such frames are dropped); false: frames taken as equal.
+    ``transforms`` may be replaced between frames (process_bag: one buffer per bag).
     """
 
-    def __init__(self, settings: LmdSettings, models, *, min_confidence: float = 0.0):
+    def __init__(self, settings: LmdSettings, models, *, min_confidence: float = 0.0,
+                 transforms=None, transform_inputs: bool = True):
         settings.validate()
         if tuple(models.feature_names) != settings.feature_names():
             raise ValueError("models were loaded for another feature schema than the settings'")
@@ -362,6 +410,7 @@ class LmdProcessor:
         self.settings = settings
         self.models = models
         self.min_confidence = float(min_confidence)
+        self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
         from lidar_quality_msgs.msg import DetectionQuality, DetectionQualityArray
         from vision_msgs.msg import Detection3DArray
         self._Quality, self._QualityArray = DetectionQuality, DetectionQualityArray
@@ -374,10 +423,20 @@ class LmdProcessor:
         detection is scaled so that its top one equals the meta confidence. Decoded
         (``DecodedDetections``) input gives serialized output bytes, every field copied;
         message input is re-scored in place (the node owns its input messages) and
-        republished. Raises ``CloudFormatError`` for a bad cloud (the frame is dropped);
-        bad boxes never raise.
+        republished. Raises ``CloudFormatError`` for a bad cloud and ``NoTransformError``
+        for inputs in another frame without a transform (the frame is dropped); bad boxes
+        never raise.
         """
-        frame = frame_features(cloud, detections, proposals, self.settings)
+        moved, frame_notes = {}, []
+        if self.transform_inputs:
+            t = self.transforms
+            moved, frame_notes = input_transforms(
+                cloud.header.frame_id, {"input/detections": detections,
+                                        "input/proposals": proposals},
+                None if t is None else getattr(t, "lookup", t),
+                fix=" (publish it on /tf_static or /tf, or set transform_inputs: false to "
+                    "compute as if the frames were equal)")
+        frame = frame_features(cloud, detections, proposals, self.settings, transforms=moved)
         conf, iou = self.models.predict(frame.features)
         n = len(frame.detections)
         kept = (conf >= self.min_confidence) if self.min_confidence > 0 else np.ones(n, bool)
@@ -412,7 +471,8 @@ class LmdProcessor:
                    for i in np.flatnonzero(~frame.valid).tolist()]
             issues["detections"] = (f"{len(bad)} invalid detection(s) kept with NaN confidence: "
                                     + ", ".join(bad[:5]) + (" ..." if len(bad) > 5 else ""))
-        mismatch = frame_id_mismatch(cloud, detections, proposals)
+        mismatch = (frame_id_mismatch(cloud, detections, proposals) if not self.transform_inputs
+                    else "; ".join(frame_notes))
         if mismatch:
             issues["frame_id"] = mismatch
         return LmdOutputs(frame, conf, iou, kept, det_msg, quality, mk, issues)
@@ -425,8 +485,8 @@ class LmdProcessor:
         idx = np.flatnonzero(kept)
         labels = frame.detections.labels
         texts = [f"{labels[i]} c={conf[i]:.2f} iou={iou[i]:.2f}" for i in idx.tolist()]
-        return box_markers(frame.header, frame.detections.boxes[idx], conf[idx], texts,
-                           ns="lmd")
+        return box_markers(frame.boxes_header or frame.header, frame.detections.boxes[idx],
+                           conf[idx], texts, ns="lmd")
 
 
 def frame_id_mismatch(cloud, detections, proposals) -> str | None:

@@ -28,6 +28,11 @@ features); the frames already waiting for it come out at once. Its next message 
 live again. The synchroniser stays one ``SyncedInputs`` over all inputs: no subscription
 is re-created, and the matching rules (exact / approximate, queues, counters) stay the
 shared ones.
+
+Frames: with ``transform_inputs`` (default) the node listens to ``/tf_static`` and ``/tf``
+(``lidar_quality_ros.tf_listener``) and the processor moves the other heads and the cloud
+into the first present head's frame (the output header's); a frame whose transform is
+missing is dropped (``dropped.no_transform``, a warning naming the frames and the stamp).
 """
 from __future__ import annotations
 
@@ -36,9 +41,11 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from lidar_quality_core.detection_cdr import decode_detection_array
+from lidar_quality_core.transforms import TransformBuffer
 from lidar_quality_msgs.msg import BoxVarianceArray, ClusterUncertaintyArray
 from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.runner import run_node
+from lidar_quality_ros.tf_listener import TfListener
 from sensor_msgs.msg import PointCloud2
 from vision_msgs.msg import Detection3DArray
 from visualization_msgs.msg import MarkerArray
@@ -58,7 +65,14 @@ class MimoNode(QualityNode):
         self.settings, self.use_variances = p.settings, p.use_variances
         self.head_timeout = p.head_timeout
         self.models = load_models(p, warn=self.get_logger().warning)
-        self.processor = MimoProcessor(self.settings, self.models, scores=p.output_scores)
+        self.tf = None
+        if p.transform_inputs:
+            self.tf = TfListener(self, TransformBuffer(
+                extrapolation_tolerance_s=p.transform_tolerance),
+                on_bad=lambda text: self.warn_input("tf", text))
+        self.processor = MimoProcessor(self.settings, self.models, scores=p.output_scores,
+                                       transforms=self.tf.buffer if self.tf else None,
+                                       transform_inputs=p.transform_inputs)
 
         K = self.settings.num_heads
         topics = [(Detection3DArray, f"input/head_{k}") for k in range(K)]

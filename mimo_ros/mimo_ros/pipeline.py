@@ -25,12 +25,18 @@ Conversions and conventions:
   the predictive variances are NaN (the epistemic ones are not).
 * Tilted head boxes (|roll| or |pitch| > ``boxes.TILT_TOLERANCE_DEG``) are merged as
   upright boxes with their yaw, and reported in ``MimoFrame.issues``.
-* Frames: a head (or a PointCloud2 ``cloud_msg``) whose frame_id differs from the first
-  head's is reported in ``MimoFrame.issues`` and still merged, as if the frames were equal
-  (as ``lmd_ros`` does): the heads of one network share its input cloud's frame, so a
-  differing frame_id is far more often a mislabelled header than boxes really in another
-  frame, and dropping that head would silently change K for every frame. No transform
-  is applied.
+* Frames (``MimoParameters.transform_inputs``, default true): everything is computed in
+  the frame of the first head present (the output header's frame): the other heads' boxes
+  (``transforms.Transform.apply_boxes``; their x / y variances turned with the transform's
+  yaw) and the cloud's points are moved into it with the transform at their own stamp
+  (``transforms.input_transforms``). The heads' frame, not the cloud's, so that the merged
+  boxes come out in the frame the output message names and the heads' own merge is
+  untouched by a cloud in another frame; the ``distance`` feature is then measured from
+  the heads' origin (the models are trained with heads in the sensor frame, so heads in
+  ``base_link`` shift it by the mount offset: train in the frame you run in). A missing
+  transform drops the frame (``transforms.NoTransformError``, ``no_transform``). With
+  ``transform_inputs`` false a differing frame_id is reported in ``MimoFrame.issues`` and
+  the inputs are merged as if the frames were equal.
 * Missing heads (``None`` in the head list: a head that stopped publishing, see
   :class:`InputLiveness`): the frame is merged over the heads present, and the voting
   rule uses K = their number (consensus of 2 heads needs 2 votes; with one head left, 1).
@@ -39,7 +45,7 @@ Conversions and conventions:
 from __future__ import annotations
 
 import threading
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Sequence
 
@@ -53,6 +59,7 @@ from lidar_quality_core.frame import FrameRejected
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
+from lidar_quality_core.transforms import Transform, input_transforms
 
 from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, MergeResult, merge_heads
 from lidar_quality_core.mimo.uncertainty import BOX_PARAMS
@@ -147,6 +154,14 @@ class MimoParameters:
         "the node merges without it (warning in /diagnostics); it rejoins with its next "
         "message.", min_value=1e-3)
     publish_markers: bool = param(True, "Publish output/markers (boxes coloured by confidence).")
+    transform_inputs: bool = param(
+        True, "Transform heads (and input/points) whose frame_id differs from the first head's "
+        "into that frame (/tf_static, /tf); a frame whose transform is missing is dropped "
+        "(counted as no_transform, with a warning naming the frames). false: merge as if "
+        "the frames were equal (warning).")
+    transform_tolerance: float = param(
+        0.05, "Seconds a stamp may lie outside the samples of a moving (/tf) transform and "
+        "still take the nearest one (static transforms hold at any time).", min_value=0.0)
     output_scores: str = param(
         "confidence", "Hypothesis scores of output/detections: 'confidence' (the merged class "
         "distribution scaled so that the top score is the meta confidence) or 'merged' (the "
@@ -232,14 +247,31 @@ def _arrays(det_msg) -> DetectionArrays:
     return decoded if isinstance(decoded, DetectionArrays) else detections_to_arrays(det_msg)
 
 
+def _turned_variances(var: np.ndarray, yaw: float) -> np.ndarray:
+    """x / y variances of boxes turned by ``yaw`` (their covariance taken as 0)."""
+    c2, s2 = np.cos(yaw) ** 2, np.sin(yaw) ** 2
+    out = var.copy()
+    out[:, 0] = c2 * var[:, 0] + s2 * var[:, 1]
+    out[:, 1] = s2 * var[:, 0] + c2 * var[:, 1]
+    return out
+
+
 def head_detections(det_msg, variance_msg, settings: MimoSettings = MimoSettings(), *,
-                    issues: list | None = None) -> tuple[HeadDetections, DetectionArrays]:
+                    issues: list | None = None,
+                    transform: Transform | None = None) -> tuple[HeadDetections, DetectionArrays]:
     """One head's ``HeadDetections`` (class scores = probabilities, background column 0)
     and the decoded arrays of its message. ``det_msg``: a Detection3DArray, or its
     ``DetectionArrays`` already decoded (also anything with such an ``arrays`` attribute,
     e.g. ``detection_cdr.DecodedDetections``). Unusable boxes get NaN class scores, so
-    ``merge_heads`` leaves them out; what was wrong is appended to ``issues``."""
+    ``merge_heads`` leaves them out; what was wrong is appended to ``issues``.
+    ``transform``: into the computation frame (boxes and variances moved; the returned
+    arrays hold the moved boxes)."""
     arrays = _arrays(det_msg)
+    if transform is not None:
+        boxes, tilted = transform.apply_boxes(arrays.boxes)
+        arrays = replace(arrays, boxes=boxes)
+        if tilted:
+            _note(issues, tilted)
     probs, known, in_range = _class_probabilities(arrays, settings.class_names)
     usable = arrays.valid & known & in_range
     if not usable.all():
@@ -254,6 +286,10 @@ def head_detections(det_msg, variance_msg, settings: MimoSettings = MimoSettings
     if tilt:
         _note(issues, tilt)
     var = _variances(variance_msg, arrays, issues)
+    if transform is not None:
+        yaw = transform.rpy()[2]
+        if yaw:
+            var = _turned_variances(var, yaw)
     return HeadDetections(arrays.boxes, probs, var), arrays
 
 
@@ -372,11 +408,15 @@ def _frame_id_mismatches(named) -> list[str]:
 
 
 def frame_features(head_msgs: Sequence, variance_msgs: Sequence | None = None,
-                   settings: MimoSettings = MimoSettings(), cloud_msg=None) -> MimoFrame:
+                   settings: MimoSettings = MimoSettings(), cloud_msg=None, *,
+                   transforms: dict | None = None) -> MimoFrame:
     """Decode the heads of one frame (``None``: head missing), merge them and compute the
     features. ``variance_msgs``: one ``BoxVarianceArray`` or ``None`` per head (or None).
     ``cloud_msg``: a PointCloud2 or ``(xyz, intensity)``, used when ``settings.use_points``
-    (None there: the point features are NaN). Raises ``ValueError`` without any head."""
+    (None there: the point features are NaN). ``transforms``: ``{"head k" | "input/points":
+    Transform}`` into the first present head's frame (``transforms.input_transforms``);
+    given (even empty), frame_id differences are the caller's business; None: they are
+    reported and merged as if equal. Raises ``ValueError`` without any head."""
     if len(head_msgs) != settings.num_heads:
         raise ValueError(f"{len(head_msgs)} head messages for num_heads={settings.num_heads}")
     if variance_msgs is None:
@@ -387,12 +427,18 @@ def frame_features(head_msgs: Sequence, variance_msgs: Sequence | None = None,
     if not used:
         raise ValueError("no head message in this frame")
     issues: list[str] = []
-    issues += _frame_id_mismatches([(f"head {k}", head_msgs[k]) for k in used]
-                                   + [("input/points", cloud_msg)])
+    if transforms is None:
+        issues += _frame_id_mismatches([(f"head {k}", head_msgs[k]) for k in used]
+                                       + [("input/points", cloud_msg)])
+        transforms = {}
+    if "input/points" in transforms and cloud_msg is not None and settings.use_points:
+        xyz, inten = _decode_cloud(cloud_msg)
+        cloud_msg = (transforms["input/points"].apply_points(xyz), inten)
     heads, arrays = [], []
     for k in used:
         mine: list[str] = []
-        h, a = head_detections(head_msgs[k], variance_msgs[k], settings, issues=mine)
+        h, a = head_detections(head_msgs[k], variance_msgs[k], settings, issues=mine,
+                               transform=transforms.get(f"head {k}"))
         heads.append(h)
         arrays.append(a)
         issues += [f"head {k}: {t}" for t in mine]
@@ -479,11 +525,12 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
 
 def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, models, *,
                   cloud_msg=None, scores: str = "confidence",
-                  serialized: bool = False) -> MimoOutput:
+                  serialized: bool = False, transforms: dict | None = None) -> MimoOutput:
     """The node's work for one frame, decode to output messages: ``frame_features``,
     ``models.predict`` (a ``MetaModels``), ``output_messages`` (``serialized``: the
     detections as bytes)."""
-    frame = frame_features(head_msgs, variance_msgs, settings, cloud_msg)
+    frame = frame_features(head_msgs, variance_msgs, settings, cloud_msg,
+                           transforms=transforms)
     conf, iou = models.predict(frame.features)
     dets, unc = output_messages(header, frame, conf, iou, scores=scores,
                                 confidence_model_id=models.confidence_model_id,
@@ -519,16 +566,24 @@ class MimoProcessor:
     intensity)`` pair or None) in; the output messages, issues and counts out. The node
     and ``process_bag`` both call it.
 
-    A malformed cloud costs the point features (NaN), not the frame (issue ``cloud``); a
-    cloud in another frame than the heads is used as if equal (issue ``cloud_frame_id``);
+    A malformed cloud costs the point features (NaN), not the frame (issue ``cloud``);
     head problems are issue ``heads``. No head at all raises :class:`NoHeadError`.
-    ``scores`` (``confidence`` | ``merged``) may be changed between frames."""
+    ``scores`` (``confidence`` | ``merged``) may be changed between frames.
 
-    def __init__(self, settings: MimoSettings, models, *, scores: str = "confidence"):
+    Frames: with ``transform_inputs`` the other heads and the cloud are moved into the
+    first present head's frame with ``transforms`` (a ``transforms.TransformBuffer``, a
+    ``lookup(target, source, stamp_ns)`` callable, or None: no transform known); a missing
+    one raises ``transforms.NoTransformError`` (the frame is dropped). Without, inputs in
+    other frames are merged as if equal (issues ``heads`` and ``cloud_frame_id``).
+    ``transforms`` may be replaced between frames."""
+
+    def __init__(self, settings: MimoSettings, models, *, scores: str = "confidence",
+                 transforms=None, transform_inputs: bool = True):
         settings.validate()
         if scores not in OUTPUT_SCORES:
             raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
         self.settings, self.models, self.scores = settings, models, scores
+        self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
 
     def process(self, heads: Sequence, variances: Sequence | None = None, cloud=None, *,
                 markers: bool = False) -> MimoFrameOutputs:
@@ -548,12 +603,25 @@ class MimoProcessor:
                 issues["cloud"] = f"malformed input/points, point features NaN: {exc}"
             else:
                 frame_id = getattr(getattr(cloud, "header", None), "frame_id", None)
-                if frame_id is not None and frame_id != header.frame_id:
+                if (not self.transform_inputs and frame_id is not None
+                        and frame_id != header.frame_id):
                     issues["cloud_frame_id"] = (
                         f"input/points frame_id {frame_id!r} differs from the "
                         f"heads' {header.frame_id!r} (point features computed as if equal)")
+        moved = None
+        if self.transform_inputs:
+            t = self.transforms
+            named = {f"head {k}": h for k, h in enumerate(heads) if h is not None}
+            if xyz is not None:
+                named["input/points"] = cloud
+            moved, notes = input_transforms(
+                header.frame_id, named, None if t is None else getattr(t, "lookup", t),
+                fix=" (publish it on /tf_static or /tf, or set transform_inputs: false to "
+                    "merge as if the frames were equal)")
+            if notes:
+                issues["frame_id"] = "; ".join(notes)
         out = process_frame(header, list(heads), variances, s, self.models, cloud_msg=xyz,
-                            scores=self.scores, serialized=True)
+                            scores=self.scores, serialized=True, transforms=moved)
         if out.frame.issues:
             issues["heads"] = "; ".join(out.frame.issues)
         mk = None

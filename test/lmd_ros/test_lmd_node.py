@@ -4,6 +4,7 @@ stamps, bad input, model refusal, the installed executable.
 
 The models are real: XGBoost fitted once per session on synthetic frames
 (``lmd_frames.train_models``)."""
+import copy
 import math
 import signal
 import subprocess
@@ -13,7 +14,12 @@ import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 from lidar_quality_core import synthetic
+from geometry_msgs.msg import TransformStamped
+from lidar_quality_core.boxes import detections_to_arrays, yaw_to_quaternion
 from lidar_quality_core.meta_model import MetaModels
+from lidar_quality_core.transforms import Transform
+from lidar_quality_ros.tf_listener import tf_static_qos
+from tf2_msgs.msg import TFMessage
 from lidar_quality_msgs.msg import DetectionQualityArray
 from lmd_frames import frame_messages, header, train_models
 from lmd_ros.lmd_node import LmdNode
@@ -27,7 +33,8 @@ from visualization_msgs.msg import MarkerArray
 
 PARAMS = ("proposal_mode", "classifier_path", "regressor_path", "iou_threshold",
           "proposal_score_threshold", "nms_iou_threshold", "nms_score_threshold",
-          "class_names", "min_confidence", "publish_markers", "sync_mode", "sync_slop",
+          "class_names", "min_confidence", "publish_markers", "transform_inputs",
+          "transform_tolerance", "sync_mode", "sync_slop",
           "sync_queue_size", "processing_queue_size", "diagnostics_period",
           "diagnostics_window", "drop_warn_fraction", "drop_error_fraction", "input_timeout",
           "input_error_timeout")
@@ -256,10 +263,69 @@ def test_approximate_sync_with_jittered_stamps(ros, models_dir):
     assert node.diag.dropped == 0
 
 
+# ---------------------------------------------------------------- frames
+def in_frame(msg, t, frame_id):
+    """A copy of ``msg`` with its boxes moved by ``t`` into ``frame_id`` (upright boxes)."""
+    out = copy.deepcopy(msg)
+    out.header = header(msg.header.stamp.sec, frame_id)
+    moved, _ = t.apply_boxes(detections_to_arrays(msg).boxes)
+    for d, b, q in zip(out.detections, moved, yaw_to_quaternion(moved[:, 6])):
+        p, o = d.bbox.center.position, d.bbox.center.orientation
+        p.x, p.y, p.z = b[:3].tolist()
+        o.x, o.y, o.z, o.w = q.tolist()
+    return out
+
+
+def test_detections_in_another_frame(ros, models_dir):
+    """Acceptance (issue 16, frames): detections and proposals in base_link with a static
+    base_link <- lidar_top on /tf_static give the outputs of the same scene published in
+    the cloud's frame; a frame whose transform is missing is dropped, counted as
+    no_transform, with a warning naming the frames."""
+    t_base_lidar = Transform.from_yaw(0.3, (1.2, 0.1, 1.8))
+    ts = TransformStamped()
+    ts.header.frame_id, ts.child_frame_id = "base_link", "lidar_top"
+    v = ts.transform.translation
+    v.x, v.y, v.z = t_base_lidar.translation.tolist()
+    r = ts.transform.rotation
+    r.x, r.y, r.z, r.w = t_base_lidar.rotation.tolist()
+    static = ros.publisher(TFMessage, "/tf_static", tf_static_qos())
+    static.publish(TFMessage(transforms=[ts]))  # before the node: latched
+    node = ros.start(LmdNode, parameters=model_params(models_dir, diagnostics_period=0.2))
+    assert wait_until(lambda: node.tf.buffer.can_transform("lidar_top", "base_link"))
+    io = Io(ros, node)
+    models = load_models(models_dir)
+    for k, (sec, seed) in enumerate([(1, 11), (2, 12)]):
+        cloud, dets, props = frame(seed, sec)
+        dets_b, props_b = (in_frame(m, t_base_lidar, "base_link") for m in (dets, props))
+        io.send(cloud, dets_b, props_b)
+        assert io.quality.wait_for(k + 1, timeout=15.0) and io.dets.wait_for(k + 1, 5.0)
+        _, conf, iou = expected(seed, sec, models)
+        q, got = io.quality.messages[k], io.dets.messages[k]
+        np.testing.assert_allclose([e.confidence for e in q.detections], conf, rtol=0,
+                                   atol=1e-9)
+        np.testing.assert_allclose([e.predicted_iou for e in q.detections], iou, rtol=0,
+                                   atol=1e-9)
+        assert got.header == dets_b.header and q.header == dets_b.header
+        assert [d.id for d in got.detections] == [d.id for d in dets_b.detections]
+        assert [d.bbox for d in got.detections] == [d.bbox for d in dets_b.detections]
+    assert node.diag.dropped == 0 and "frame_id" not in node.diag.warning_keys()
+
+    # no transform radar_link -> lidar_top: dropped, counted, named
+    cloud, dets, props = frame(13, 3)
+    io.send(cloud, in_frame(dets, t_base_lidar, "radar_link"), props)
+    assert wait_until(lambda: diag_values(node.diag.status()).get("dropped.no_transform")
+                      == "1")
+    msg = node.diag.status().message
+    assert "'radar_link'" in msg and "'lidar_top'" in msg and "at stamp 3.000000000 s" in msg
+    assert node.diag.dropped == 1 and len(io.quality.messages) == 2
+
+
 # ---------------------------------------------------------------- bad input
 def test_bad_input_does_not_kill_the_node(ros, models_dir):
+    # transform_inputs false: a frame_id mismatch is processed as if equal, with a warning
     node = ros.start(LmdNode, parameters=model_params(models_dir, diagnostics_period=0.2,
-                                                      diagnostics_window=1.0))
+                                                      diagnostics_window=1.0,
+                                                      transform_inputs=False))
     io = Io(ros, node)
     diag = ros.collector(DiagnosticArray, "/diagnostics")
     models = load_models(models_dir)

@@ -1,15 +1,19 @@
 """lmd_ros.pipeline: messages -> features (same as compute_features on the same arrays),
 exact-mode NMS, invalid boxes, malformed clouds, and the node's frame processor."""
+import copy
 import math
 
 import numpy as np
 import pytest
 from lidar_quality_core import synthetic
-from lidar_quality_core.boxes import arrays_to_detections, detections_to_arrays
+from lidar_quality_core.boxes import (arrays_to_detections, detections_to_arrays,
+                                      yaw_to_quaternion)
+from lidar_quality_core.frame import FrameRejected
 from lidar_quality_core.detection_cdr import decode_detection_array
 from lidar_quality_core.meta_model import MetaModels
 from lidar_quality_core.nms import rotated_nms
 from lidar_quality_core.pointcloud import CloudFormatError, create_cloud, create_xyz_cloud
+from lidar_quality_core.transforms import NoTransformError, Transform, TransformBuffer
 from rclpy.serialization import deserialize_message, serialize_message
 from vision_msgs.msg import Detection3DArray
 from lmd_frames import CLASS_NAMES, frame_messages, header, train_models
@@ -263,7 +267,8 @@ def test_processor_flags_invalid_boxes(threshold_models):
     dets.detections[1].bbox.size.y = 0.0
     dets.detections[2].results[0].hypothesis.class_id = "tram"
     dets.header = header(3, "odom")
-    out = LmdProcessor(s, models, min_confidence=0.01).process(cloud, dets, props)
+    out = LmdProcessor(s, models, min_confidence=0.01, transform_inputs=False).process(
+        cloud, dets, props)
     assert np.isnan(out.confidence[1:3]).all() and np.isfinite(out.confidence[3:]).all()
     assert "2 invalid" in out.issues["detections"] and "unknown class 'tram'" in out.issues["detections"]
     assert "frame_id" in out.issues["frame_id"]
@@ -421,3 +426,125 @@ def test_processor_reports_scores_and_tilt(threshold_models):
     assert "score 1.7 outside [0, 1]" in out.issues["detections"]
     assert np.isnan(out.confidence[0]) and np.isfinite(out.confidence[1:]).all()
     assert "up to 30.0 deg" in out.issues["roll_pitch"]
+
+
+# ------------------------------------------------------------------ frames
+def in_frame(msg, t: Transform, frame_id: str):
+    """A copy of Detection3DArray ``msg`` with every box moved by ``t`` (upright boxes:
+    centre by ``t``, yaw plus ``t``'s yaw) and ``frame_id`` in its header."""
+    out = copy.deepcopy(msg)
+    out.header.frame_id = frame_id
+    a = detections_to_arrays(msg)
+    moved, _ = t.apply_boxes(a.boxes)
+    quat = yaw_to_quaternion(moved[:, 6])
+    for d, b, q in zip(out.detections, moved, quat):
+        p, o = d.bbox.center.position, d.bbox.center.orientation
+        p.x, p.y, p.z = b[:3].tolist()
+        o.x, o.y, o.z, o.w = q.tolist()
+    return out
+
+
+#: base_link <- lidar_top: a roof lidar 1.2 m ahead, 1.8 m up, turned by 0.3 rad
+T_BASE_LIDAR = Transform.from_yaw(0.3, (1.2, 0.1, 1.8))
+
+
+def static_buffer(t=T_BASE_LIDAR):
+    buf = TransformBuffer()
+    buf.set_transform("base_link", "lidar_top", t, static=True)
+    return buf
+
+
+def boxes_of(msg):
+    return np.array([[d.bbox.center.position.x, d.bbox.center.position.y,
+                      d.bbox.center.position.z, d.bbox.size.x, d.bbox.size.y, d.bbox.size.z,
+                      d.bbox.center.orientation.z] for d in msg.detections])
+
+
+@pytest.mark.parametrize("decoded", [False, True])
+def test_processor_inputs_in_another_frame_give_the_same_outputs(threshold_models, decoded):
+    s, models = threshold_models
+    f = synthetic.synthetic_frame(n_points=20_000, n_objects=12, n_proposals=120, seed=21)
+    ref = LmdProcessor(s, models).process(*frame_messages(f, 3))
+    cloud, dets, props = frame_messages(f, 3)
+    dets_b = in_frame(dets, T_BASE_LIDAR, "base_link")
+    props_b = in_frame(props, T_BASE_LIDAR, "base_link")
+    sent = boxes_of(dets_b)
+    if decoded:  # as the node takes them: bytes decoded by detection_cdr
+        dets_b, props_b = (decode_detection_array(serialize_message(m))
+                           for m in (dets_b, props_b))
+    # the scene really differs in base_link: computed as if equal, confidences move
+    as_if = LmdProcessor(s, models, transform_inputs=False).process(
+        cloud, *(copy.deepcopy(m) if not decoded else m for m in (dets_b, props_b)))
+    assert "frame_id mismatch" in as_if.issues["frame_id"]
+    assert np.nanmax(np.abs(as_if.confidence - ref.confidence)) > 0.05
+    fresh = [copy.deepcopy(m) if not decoded else m for m in (dets_b, props_b)]
+    proc = LmdProcessor(s, models, transforms=static_buffer())
+    out = proc.process(cloud, dets_b, props_b, markers=True)
+    np.testing.assert_allclose(out.confidence, ref.confidence, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out.predicted_iou, ref.predicted_iou, rtol=0, atol=1e-9)
+    assert out.issues == {} and ref.confidence.min() < 0.5 < ref.confidence.max()
+    # outputs keep the input detections' header, boxes, order and ids
+    got = deserialize_message(out.detections, Detection3DArray) if decoded else out.detections
+    assert got.header.frame_id == "base_link" and out.quality.header.frame_id == "base_link"
+    np.testing.assert_array_equal(boxes_of(got), sent)
+    assert [d.id for d in got.detections] == [d.id for d in dets.detections]
+    # markers draw the boxes where they were computed: in the cloud's frame
+    assert {m.header.frame_id for m in out.markers.markers} == {"lidar_top"}
+    # a lookup callable works as well as the buffer
+    out2 = LmdProcessor(s, models, transforms=static_buffer().lookup).process(cloud, *fresh)
+    np.testing.assert_array_equal(out2.confidence, out.confidence)
+
+
+def test_processor_chains_timestamped_transforms(threshold_models):
+    """Detections in ``odom`` while the vehicle moves: odom <- base_link from /tf samples
+    (interpolated at the detections' stamp), base_link <- lidar_top static."""
+    s, models = threshold_models
+    f = synthetic.synthetic_frame(n_points=20_000, n_objects=10, n_proposals=100, seed=22)
+    ref = LmdProcessor(s, models).process(*frame_messages(f, 3))
+    buf = static_buffer()
+    for k in range(5):  # 2.8 .. 3.2 s, driving and turning
+        buf.set_transform("odom", "base_link", Transform.from_yaw(0.1 * k, (5.0 * k, 1.0, 0)),
+                          2_800_000_000 + 100_000_000 * k)
+    t_odom_lidar = Transform.from_yaw(0.2, (10.0, 1.0, 0)) * T_BASE_LIDAR  # at k = 2 (3.0 s)
+    cloud, dets, props = frame_messages(f, 3)
+    out = LmdProcessor(s, models, transforms=buf).process(
+        cloud, in_frame(dets, t_odom_lidar, "odom"), in_frame(props, t_odom_lidar, "odom"))
+    np.testing.assert_allclose(out.confidence, ref.confidence, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(out.predicted_iou, ref.predicted_iou, rtol=0, atol=1e-9)
+
+
+def test_processor_missing_transform_rejects_the_frame(threshold_models):
+    s, models = threshold_models
+    f = synthetic.synthetic_frame(n_points=5_000, n_objects=4, n_proposals=40, seed=23)
+    cloud, dets, props = frame_messages(f, 3)
+    dets_b = in_frame(dets, T_BASE_LIDAR, "base_link")
+    for transforms in (None, TransformBuffer()):
+        with pytest.raises(NoTransformError) as e:
+            LmdProcessor(s, models, transforms=transforms).process(cloud, dets_b, props)
+        assert isinstance(e.value, FrameRejected)
+        assert e.value.reason == "no_transform" and e.value.cause == "no_transform"
+        text = str(e.value)
+        assert "input/detections" in text and "'base_link'" in text and "'lidar_top'" in text
+        assert "transform_inputs: false" in text
+    with pytest.raises(NoTransformError, match=r"at stamp 3\.000000000 s: frame 'base_link' "
+                                               r"and frame 'lidar_top' are unknown"):
+        LmdProcessor(s, models, transforms=TransformBuffer()).process(cloud, dets_b, props)
+    # exact mode: the proposals are what is moved
+    out = LmdProcessor(s, models, transforms=static_buffer()).process(
+        cloud, dets, in_frame(props, T_BASE_LIDAR, "base_link"))
+    assert out.issues == {}
+
+
+def test_processor_tilting_transform_is_reported(threshold_models):
+    s, models = threshold_models
+    f = synthetic.synthetic_frame(n_points=5_000, n_objects=4, n_proposals=40, seed=24)
+    cloud, dets, props = frame_messages(f, 3)
+    tilt = Transform([0, 0, 1.8], [0.0, np.sin(0.05), 0.0, np.cos(0.05)])  # 5.7 deg pitch
+    buf = static_buffer(tilt)
+    out = LmdProcessor(s, models, transforms=buf).process(
+        cloud, in_frame(dets, T_BASE_LIDAR, "base_link"), props)
+    assert "input/detections: the transform tilts by 5.7 deg" in out.issues["transform"]
+    # an empty frame_id cannot be looked up: taken as the cloud's, and said so
+    dets.header = header(3, "")
+    out = LmdProcessor(s, models, transforms=buf).process(cloud, dets, props)
+    assert "empty frame_id" in out.issues["frame_id"]

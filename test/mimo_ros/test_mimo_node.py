@@ -1,12 +1,18 @@
 """mimo_node: parameters, merged outputs equal to the pipeline + meta models, stopped heads,
 variance and point inputs, malformed heads, model refusal, the installed executable."""
+import copy
 import subprocess
 
 import numpy as np
 import pytest
+from geometry_msgs.msg import TransformStamped
+from lidar_quality_core.boxes import detections_to_arrays, yaw_to_quaternion
 from lidar_quality_core.iou import iou_3d
 from lidar_quality_core.meta_model import MetaModels, fit_estimator, save_pair
-from lidar_quality_core.pointcloud import create_xyz_cloud
+from lidar_quality_core.pointcloud import create_xyz_cloud, xyz_intensity
+from lidar_quality_core.transforms import Transform
+from lidar_quality_ros.tf_listener import tf_static_qos
+from tf2_msgs.msg import TFMessage
 from lidar_quality_msgs.msg import BoxVarianceArray, ClusterUncertaintyArray
 from mimo_ros.mimo_node import MimoNode
 from mimo_ros.pipeline import (DEFAULT_CLASS_NAMES, MimoSettings, default_model_paths,
@@ -158,7 +164,8 @@ def test_parameters_and_inputs(ros, model_dir):
     assert_declared_with_descriptions(node, {
         "num_heads", "eps", "voting", "min_cluster_size", "class_aware", "temperature",
         "use_variances", "use_points", "head_timeout", "classifier_path", "regressor_path",
-        "class_names", "publish_markers", "output_scores", "sync_mode", "sync_slop",
+        "class_names", "publish_markers", "transform_inputs", "transform_tolerance",
+        "output_scores", "sync_mode", "sync_slop",
         "sync_queue_size", "processing_queue_size", "diagnostics_period"})
     assert_yaml_matches_declared(node, "mimo_ros")
     assert node.inputs.topics == [f"input/head_{k}" for k in range(3)] + [
@@ -305,12 +312,91 @@ def test_points_input(ros, model_dir):
         np.testing.assert_allclose([c.confidence for c in got[stamp(i)].clusters],
                                    ref.confidence)
     assert "cloud_frame_id" not in rig.node.diag.warning_keys()
-    # a cloud in another frame than the heads: processed, and said
+    # a cloud in another frame than the heads, no transform known: dropped, named
     _, heads, variances, cloud = make_frame(2)
-    cloud.header = Header(stamp=cloud.header.stamp, frame_id="base_link")  # not the heads'
-    rig.send(heads, variances, cloud)
+    cloud_b = in_frame(cloud, T_BASE_LIDAR, "base_link")
+    rig.send(heads, variances, cloud_b)
+    assert wait_until(lambda: diag_values(rig.node.diag.status()).get("dropped.no_transform")
+                      == "1")
+    msg = rig.node.diag.status().message
+    assert "'base_link' to 'lidar'" in msg and "at stamp 100.200000000 s" in msg
+    # with base_link <- lidar on /tf_static the same scene gives the same outputs
+    static = ros.publisher(TFMessage, "/tf_static", tf_static_qos())
+    static.publish(tf_message("base_link", "lidar", T_BASE_LIDAR))
+    assert wait_until(lambda: rig.node.tf.buffer.can_transform("lidar", "base_link"))
+    _, heads, variances, cloud = make_frame(3)
+    ref = process_frame(heads[0].header, heads, variances, settings, models, cloud_msg=cloud)
+    rig.send(heads, variances, in_frame(cloud, T_BASE_LIDAR, "base_link"))
     assert rig.unc.wait_for(3)
-    assert "input/points frame_id 'base_link' differs" in rig.node.diag.status().message
+    u = by_stamp(rig.unc.messages)[stamp(3)]
+    assert u.header.frame_id == "lidar"
+    # float32 CDR points: base_link coordinates rounded, moved back in float64
+    np.testing.assert_allclose([c.confidence for c in u.clusters], ref.confidence, atol=1e-6)
+    np.testing.assert_allclose([c.predicted_iou for c in u.clusters], ref.predicted_iou,
+                               atol=1e-6)
+    assert rig.node.diag.dropped == 1
+
+
+#: base_link <- lidar: a roof mount 1.2 m ahead, 1.8 m up, turned by 0.3 rad
+T_BASE_LIDAR = Transform.from_yaw(0.3, (1.2, 0.1, 1.8))
+
+
+def in_frame(cloud, t, frame_id):
+    """``cloud`` (x, y, z, intensity) with its points moved by ``t`` into ``frame_id``."""
+    xyz, inten = xyz_intensity(cloud)
+    h = Header(stamp=cloud.header.stamp, frame_id=frame_id)
+    return create_xyz_cloud(h, t.apply_points(xyz).astype(np.float32), inten)
+
+
+def tf_message(parent, child, t):
+    ts = TransformStamped()
+    ts.header.frame_id, ts.child_frame_id = parent, child
+    v, r = ts.transform.translation, ts.transform.rotation
+    v.x, v.y, v.z = t.translation.tolist()
+    r.x, r.y, r.z, r.w = t.rotation.tolist()
+    return TFMessage(transforms=[ts])
+
+
+def test_heads_in_other_frames(ros, model_dir):
+    """Head 1 in base_link (static transform on /tf_static): merged in head 0's frame, the
+    outputs of the same scene published in one frame; a head in an unknown frame drops the
+    frame (no_transform)."""
+    static = ros.publisher(TFMessage, "/tf_static", tf_static_qos())
+    static.publish(tf_message("base_link", "lidar", T_BASE_LIDAR))
+    rig = Rig(ros, model_dir, use_variances=True)
+    assert wait_until(lambda: rig.node.tf.buffer.can_transform("lidar", "base_link"))
+    settings = MimoSettings()
+    p = params(model_dir)
+    models = MetaModels(p["classifier_path"], p["regressor_path"], settings.feature_names())
+    _, heads, variances, _ = make_frame(4)
+    ref = process_frame(heads[0].header, heads, variances, settings, models)
+    moved = in_frame_boxes(heads[1], T_BASE_LIDAR, "base_link")
+    rig.send([heads[0], moved], variances)
+    assert rig.unc.wait_for(1) and rig.dets.wait_for(1)
+    u, d = rig.unc.messages[0], rig.dets.messages[0]
+    assert u.header.frame_id == d.header.frame_id == "lidar"
+    np.testing.assert_allclose([c.confidence for c in u.clusters], ref.confidence, atol=1e-9)
+    np.testing.assert_allclose([c.predicted_iou for c in u.clusters], ref.predicted_iou,
+                               atol=1e-9)
+    assert [x.id for x in d.detections] == ref.frame.merged_ids()
+    # a head in a frame nobody publishes: dropped, counted, named
+    _, heads, variances, _ = make_frame(5)
+    rig.send([heads[0], in_frame_boxes(heads[1], T_BASE_LIDAR, "radar")], variances)
+    assert wait_until(lambda: diag_values(rig.node.diag.status()).get("dropped.no_transform")
+                      == "1")
+    assert "head 1: no transform from 'radar' to 'lidar'" in rig.node.diag.status().message
+
+
+def in_frame_boxes(msg, t, frame_id):
+    """A copy of Detection3DArray ``msg`` with its (upright) boxes moved by ``t``."""
+    out = copy.deepcopy(msg)
+    out.header = Header(stamp=msg.header.stamp, frame_id=frame_id)
+    moved, _ = t.apply_boxes(detections_to_arrays(msg).boxes)
+    for det, b, q in zip(out.detections, moved, yaw_to_quaternion(moved[:, 6])):
+        pos, o = det.bbox.center.position, det.bbox.center.orientation
+        pos.x, pos.y, pos.z = b[:3].tolist()
+        o.x, o.y, o.z, o.w = q.tolist()
+    return out
 
 
 def test_malformed_heads_do_not_kill_the_node(ros, model_dir):

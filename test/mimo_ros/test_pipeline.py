@@ -6,6 +6,7 @@ from lidar_quality_core.meta_model import MetaModels, fit_estimator, save_pair
 from lidar_quality_core.pointcloud import create_xyz_cloud
 from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, merge_heads
 from lidar_quality_core.parameters import from_parameters
+from lidar_quality_core.transforms import NoTransformError, Transform, TransformBuffer
 from mimo_ros.pipeline import (DEFAULT_CLASS_NAMES, POINT_FEATURES, STAT_FEATURES,
                                InputLiveness, MimoSettings, default_model_paths,
                                frame_features, head_detections, output_messages,
@@ -451,7 +452,7 @@ def test_processor_is_the_node_frame_contract(models, tmp_path):
     clf = fit_estimator("linear", "classification", X, (np.arange(len(X)) % 2).astype(float))
     reg = fit_estimator("linear", "regression", X, np.linspace(0, 1, len(X)))
     c, r = save_pair(tmp_path, "mimo_points", clf, reg, sp.feature_names())
-    pproc = MimoProcessor(sp, MetaModels(c, r, sp.feature_names()))
+    pproc = MimoProcessor(sp, MetaModels(c, r, sp.feature_names()), transform_inputs=False)
     xyz = np.zeros((20, 3), np.float32)
     cloud = create_xyz_cloud(heads[0].header, xyz, np.ones(20, np.float32))
     cloud.header = Header(stamp=cloud.header.stamp, frame_id="base_link")
@@ -460,3 +461,89 @@ def test_processor_is_the_node_frame_contract(models, tmp_path):
     cloud.data = cloud.data[:7]
     res = pproc.process(heads, None, cloud)
     assert "cloud" in res.issues and np.isnan(res.out.frame.features[:, -5:]).all()
+
+
+# ------------------------------------------------------------------ frames
+T_BASE_LIDAR = Transform.from_yaw(0.3, (1.2, 0.1, 1.8))
+
+
+def moved_head(t, frame_id, boxes=BOXES, var=VAR, ids=None):
+    """``head_msg`` of the same boxes seen from ``frame_id`` (boxes moved by ``t``; the x / y
+    variances turned with it)."""
+    b, _ = t.apply_boxes(boxes)
+    c2, s2 = np.cos(0.3) ** 2, np.sin(0.3) ** 2
+    v = var.copy()
+    v[:, 0], v[:, 1] = c2 * var[:, 0] + s2 * var[:, 1], s2 * var[:, 0] + c2 * var[:, 1]
+    m = detection_array(header(), b, FG, NAMES, ids=ids, variances=v)
+    m.header.frame_id = frame_id
+    return m, box_variance_array(m.header, v, ids=ids)
+
+
+def points_models(tmp_path, sp, heads, cloud):
+    f = frame_features(heads, None, sp, cloud)
+    X = np.vstack([f.features] * 4)
+    X[:, -5] = np.arange(len(X))
+    X[:, -4] = np.arange(len(X)) % 3
+    clf = fit_estimator("linear", "classification", X, (np.arange(len(X)) % 2).astype(float))
+    reg = fit_estimator("linear", "regression", X, np.linspace(0, 1, len(X)))
+    return MetaModels(*save_pair(tmp_path, "mimo_points", clf, reg, sp.feature_names()),
+                      sp.feature_names())
+
+
+def test_processor_heads_and_cloud_in_other_frames(models, tmp_path):
+    """Head 1 and the cloud in base_link with base_link <- lidar known: the outputs of the
+    same scene in one frame (head 0's, the output header's); variances turned too."""
+    buf = TransformBuffer()
+    buf.set_transform("base_link", "lidar", T_BASE_LIDAR, static=True)
+    s = MimoSettings()
+    h1 = BOXES + [0.3, -0.2, 0, 0.1, 0, 0, 0.05]
+    # x / y variances equal: turning them is exact (their covariance is not transported)
+    v1 = VAR * [2, 1.6, 1, 1, 1, 1, 1]
+    ref = MimoProcessor(s, models).process([head_msg(), head_msg(h1, var=v1, ids=[3, 4, 5])],
+                                           [var_msg(), var_msg(v1, ids=[3, 4, 5])])
+    mh, mv = moved_head(T_BASE_LIDAR, "base_link", h1, v1, ids=[3, 4, 5])
+    proc = MimoProcessor(s, models, transforms=buf)
+    out = proc.process([head_msg(), mh], [var_msg(), mv])
+    assert out.issues == {}
+    np.testing.assert_allclose(out.out.confidence, ref.out.confidence, atol=1e-9)
+    np.testing.assert_allclose(out.out.frame.features, ref.out.frame.features, atol=1e-9)
+    assert out.out.frame.merged_ids() == ref.out.frame.merged_ids()
+    # as if equal (transform_inputs false) the scene differs
+    as_if = MimoProcessor(s, models, transform_inputs=False).process([head_msg(), mh],
+                                                                     [var_msg(), mv])
+    assert "differs from head 0" in as_if.issues["heads"]
+    a, b = as_if.out.frame.features, ref.out.frame.features
+    assert a.shape != b.shape or not np.allclose(a, b, equal_nan=True)
+    # the first head present is the reference: head 0 missing, head 1 (base_link) leads
+    only = proc.process([None, mh], [None, mv])
+    assert bytes(only.out.detections)[:4] and only.out.frame.heads_used == [1]
+    # no transform: the frame is rejected, named
+    with pytest.raises(NoTransformError, match="head 1: no transform from 'base_link' to "
+                                               "'lidar'") as e:
+        MimoProcessor(s, models, transforms=TransformBuffer()).process([head_msg(), mh])
+    assert e.value.reason == "no_transform"
+    # a quarter turn swaps the x and y variances
+    hd, _ = head_detections(head_msg(), var_msg(), s, transform=Transform.from_yaw(np.pi / 2))
+    np.testing.assert_allclose(hd.variances[:, [1, 0, 2, 3, 4, 5, 6]], VAR, atol=1e-12)
+
+    # the cloud in base_link (use_points)
+    sp = MimoSettings(use_points=True)
+    rng = np.random.default_rng(3)
+    xyz = np.vstack([rng.uniform(-30, 30, (200, 3))]
+                    + [b[:3] + rng.uniform(-0.5, 0.5, (30, 3)) for b in BOXES])
+    inten = rng.random(len(xyz))
+    heads = [head_msg(), head_msg(h1, ids=[3, 4, 5])]
+    pm = points_models(tmp_path, sp, heads, (xyz, inten))
+    cloud = create_xyz_cloud(header(), xyz.astype(np.float32), inten.astype(np.float32))
+    ref = MimoProcessor(sp, pm).process(heads, None, cloud)
+    assert np.isfinite(ref.out.frame.features[:, -5:]).all()
+    assert (ref.out.frame.features[:, -5] > 0).all()
+    hb = Header(stamp=header().stamp, frame_id="base_link")
+    cloud_b = create_xyz_cloud(hb, T_BASE_LIDAR.apply_points(
+        xyz.astype(np.float32).astype(np.float64)), inten.astype(np.float32))
+    out = MimoProcessor(sp, pm, transforms=buf).process(heads, None, cloud_b)
+    assert out.issues == {}
+    np.testing.assert_allclose(out.out.frame.features, ref.out.frame.features, atol=1e-5)
+    np.testing.assert_allclose(out.out.confidence, ref.out.confidence, atol=1e-6)
+    with pytest.raises(NoTransformError, match="input/points: no transform from 'base_link'"):
+        MimoProcessor(sp, pm, transforms=TransformBuffer()).process(heads, None, cloud_b)
