@@ -1,9 +1,11 @@
 """Bag player node: replays a rosbag2 (MCAP or sqlite3) in real time, without rosbag2.
 
 The ``rosbags``-based stand-in for ``ros2 bag play --clock`` (:mod:`.bag_io` reads the
-bag). Every selected topic is published with its recorded QoS and timed by the recorded
-log times (scaled by ``rate``); ``/clock`` carries the bag time, with every message and
-at ``clock_rate`` in between. Messages go out as their recorded CDR bytes (rclpy
+bag: any rosbag2 ``ros2 bag`` reads, older metadata included). Every selected topic whose
+message type is available here is published (the others are skipped, one warning per
+type: a driver's raw packets without its message package) with its recorded QoS and timed
+by the recorded log times (scaled by ``rate``); ``/clock`` carries the bag time, with every
+message and at ``clock_rate`` in between. Messages go out as their recorded CDR bytes (rclpy
 publishes serialized bytes as they are), so contents and header stamps are the original
 ones and nothing is deserialised on the way (deserialising a 12 MB perception frame and
 publishing message objects took ~135 ms on the 2-core machine, the raw bytes ~10 ms).
@@ -36,7 +38,7 @@ from rclpy.node import Node
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
 from rosgraph_msgs.msg import Clock
 
-from .bag_io import bag_info, message_class, read_bag
+from .bag_io import UnknownTypes, bag_info, message_class, read_bag
 from .params import declare
 from .qos import output_qos
 from .runner import run_node
@@ -256,25 +258,30 @@ class BagPlayer(Node):
         self._clock_pub = (self.create_publisher(Clock, "/clock", output_qos(10))
                            if publish_clock else None)
 
+        for fix in info.fixes:
+            self.get_logger().info(f"{path}: metadata read with a correction: {fix}")
+        # publishing needs the message class: a type unknown here (a driver's raw packets)
+        # is skipped, with one warning per type
+        skipped = UnknownTypes(self.get_logger().warn, "not played")
+        selected = [t for t in (topics or sorted(info.topics)) if t not in exclude]
+        playable = skipped.check_all({t: info.topics[t].msgtype for t in selected})
+        self.skipped_types = skipped.seen
         self._pubs, self._names = {}, {}
-        for topic in topics or sorted(info.topics):
-            if topic in exclude:
-                continue
+        for topic in playable:
             t = info.topics[topic]
             name = remaps.get(topic, topic)
             if publish_clock and name == "/clock":
                 self.get_logger().info(f"not playing the recorded {topic}: /clock comes from the player")
                 continue
-            try:
-                cls = message_class(t.msgtype)
-            except (ImportError, AttributeError, ValueError):
-                self.get_logger().warn(f"skipping {topic}: message type {t.msgtype} not available")
-                continue
+            cls = message_class(t.msgtype)
             qos = playback_qos(t.qos, best_effort=matches(best_effort, topic, t.msgtype))
             self._pubs[topic] = self.create_publisher(cls, name, qos)
             self._names[topic] = self._pubs[topic].topic_name
         if not self._pubs:
-            raise ValueError(f"nothing to play in {path}: no playable topic selected")
+            why = "; ".join(f"{', '.join(ts)}: {ty}" for ty, ts in skipped.seen.items())
+            raise ValueError(f"nothing to play in {path}: " + (
+                f"every selected topic has a message type not available here ({why})"
+                if why else "no playable topic selected"))
         counts = [info.topics[t].count for t in self._pubs]
         # gap between the end of a pass and the next one: about one period of the
         # busiest topic, so frames do not come back to back at the loop seam
@@ -427,6 +434,7 @@ class BagPlayer(Node):
                 publish_ms_p99=_ms(s.publish_s[t], 99))
         return dict(
             bag=str(self.bag), rate=self._rate, passes=s.passes,
+            skipped_types={ty: list(ts) for ty, ts in self.skipped_types.items()},
             messages=sum(s.count.values()), wall_s=round(actual, 3),
             # achieved playback speed: rate x scheduled span / time it took
             achieved_rate=round(self._rate * scheduled / actual, 4) if actual > 0 else 0.0,

@@ -12,6 +12,13 @@ from (topic prefix ``--prefix``, default ``/perception``):
 - ``segmentation``: PointCloud2, the cloud's points with one probability field per class;
 - ``head_k`` and ``head_k/variance`` (k < ``--heads``): the multi-head detector's heads.
 
+``--topic KEY=TOPIC`` (repeatable; the keys of ``perception_bag.TOPIC_KEYS``) names the
+input cloud topic (``points``, default ``/lidar/points``) and any output topic (e.g.
+``detections=/perception/object_recognition/objects``); the input may be any rosbag2 that
+``ros2 bag`` reads, its messages of types unknown here copied as bytes (one warning per
+type). The output bag is written beside ``--out`` and moved into place when complete (a
+failed run leaves none; ``--overwrite`` replaces an existing one).
+
 This "perception bag" is the standard input of the demo and of the node tests. ``split``
 simulates a data split (``lidar_sim.splits``) sequence by sequence into perception bags.
 ``kitti`` writes KITTI result files (label format plus a score column) for a KITTI object
@@ -102,31 +109,64 @@ def _write_kitti(directory: Path, frame_id: str, det, calib) -> int:
     return kitti.write_results(directory, frame_id, boxes, types, scores, calib=calib)
 
 
-def process_bag(src: Path, dst: Path, perception: Perception, *, points_topic: str = POINTS_TOPIC,
-                prefix: str = "/perception", storage: str = "mcap", quantize: bool = False,
-                kitti_results: Path | None = None, quiet: bool = False) -> dict:
-    """Copy ``src`` into ``dst`` adding the perception outputs of every cloud."""
-    from lidar_quality_ros.bag_io import BagWriter, bag_topics, read_bag
+def process_bag(src: Path, dst: Path, perception: Perception, *, points_topic: str | None = None,
+                prefix: str = "/perception", topics: dict | None = None, storage: str = "mcap",
+                quantize: bool = False, kitti_results: Path | None = None, quiet: bool = False,
+                overwrite: bool = False) -> dict:
+    """Copy ``src`` into ``dst`` adding the perception outputs of every cloud.
+
+    ``topics``: key -> topic (``--topic``) for the input cloud (``points``) and the outputs
+    (``detections``, ``head_0/variance`` ...); outputs not named go under ``prefix``.
+    ``dst`` appears only once complete (``bag_io.atomic_output``); an existing one is
+    replaced with ``overwrite``, else ``FileExistsError``.
+    """
+    from lidar_quality_ros.bag_io import BagWriter, UnknownTypes, atomic_output, bag_info, read_bag
+    from lidar_quality_ros.perception_bag import parse_topic_options, topic_of
 
     from .cloud_input import read_cloud
 
-    if points_topic not in bag_topics(src):
-        raise SystemExit(f"{src}: no topic {points_topic} (topics: {sorted(bag_topics(src))})")
+    topics = parse_topic_options([f"{k}={v}" for k, v in (topics or {}).items()])
+    if points_topic is not None:
+        if topics.get("points", points_topic) != points_topic:
+            raise ValueError(f"--points-topic {points_topic} and --topic points="
+                             f"{topics['points']} disagree")
+        topics["points"] = points_topic
+    points_topic = topic_of("points", topics)
+
+    def out_topic(rel: str) -> str:
+        return topics.get(rel) or f"{prefix.rstrip('/')}/{rel}"
+
+    info = bag_info(src)
+    if points_topic not in info.topics:
+        raise SystemExit(f"{src}: no topic {points_topic} (topics: {sorted(info.topics)}; "
+                         "name it with --topic points=TOPIC)")
+    unknown = UnknownTypes(lambda t: print(f"{src}: warning: {t}", file=sys.stderr),
+                           "copied unchanged")
+    unknown.check_all({t: i.msgtype for t, i in info.topics.items()})
+    if points_topic in {t for ts in unknown.seen.values() for t in ts}:
+        raise SystemExit(f"{src}: {points_topic} has type {info.topics[points_topic].msgtype}, "
+                         "not a PointCloud2: choose the cloud with --topic points=TOPIC")
     if kitti_results:
         Path(kitti_results).mkdir(parents=True, exist_ok=True)
     n, t_model, t0 = 0, 0.0, time.monotonic()
-    with BagWriter(dst, storage=storage) as w:
+    with atomic_output(dst, overwrite=overwrite) as tmp, BagWriter(tmp, storage=storage) as w:
         for m in read_bag(src):
-            w.write(m.topic, m.msgtype, m.stamp_ns, m.raw)
+            t = info.topics[m.topic]
+            w.write(m.topic, m.msgtype, m.stamp_ns, m.raw, qos=t.qos, source=t)
             if m.topic != points_topic:
                 continue
-            msg = m.decode()
-            cloud = read_cloud(msg)
+            try:
+                msg = m.decode()
+                cloud = read_cloud(msg)
+            except Exception as exc:  # noqa: BLE001 - rclpy and the cloud reader raise several
+                raise SystemExit(f"{src}: the {points_topic} message logged at {m.stamp_ns} "
+                                 f"cannot be read ({type(exc).__name__}: {exc}): {dst} not "
+                                 "written") from None
             t1 = time.perf_counter()
             result = perception.run(cloud.xyz, cloud.intensity, cloud.ring)
             t_model += time.perf_counter() - t1
             for rel, msgtype, out in _messages(msg.header, cloud, result, quantize):
-                w.write(f"{prefix.rstrip('/')}/{rel}", msgtype, m.stamp_ns, out)
+                w.write(out_topic(rel), msgtype, m.stamp_ns, out)
             if kitti_results and "detector" in result:
                 from lidar_sim.kitti import SIM_CALIB  # a bag has no camera
 
@@ -137,7 +177,8 @@ def process_bag(src: Path, dst: Path, perception: Perception, *, points_topic: s
     if not quiet:
         sys.stderr.write("\n")
     return {"clouds": n, "model_ms_per_cloud": 1e3 * t_model / max(n, 1),
-            "wall_s": time.monotonic() - t0}
+            "wall_s": time.monotonic() - t0,
+            "unknown_types": {ty: list(ts) for ty, ts in unknown.seen.items()}}
 
 
 def process_split(split: str, out: Path, perception: Perception, *, storage: str = "mcap",
@@ -250,6 +291,8 @@ def process_semantickitti(root: Path, out: Path, perception: Perception, *, sequ
 
 
 def main(argv=None) -> int:
+    from lidar_quality_ros.perception_bag import add_topic_option
+
     ap = argparse.ArgumentParser(prog="reference-perception", description=__doc__.split("\n\n")[0])
     sub = ap.add_subparsers(dest="cmd", required=True)
 
@@ -264,8 +307,12 @@ def main(argv=None) -> int:
     p = sub.add_parser("bag", help="add the perception outputs to a bag")
     p.add_argument("--in", dest="src", type=Path, required=True)
     p.add_argument("--out", type=Path, required=True)
-    p.add_argument("--points-topic", default=POINTS_TOPIC)
-    p.add_argument("--prefix", default="/perception")
+    p.add_argument("--points-topic", default=None,
+                   help=f"input cloud topic (default {POINTS_TOPIC}; = --topic points=TOPIC)")
+    p.add_argument("--prefix", default="/perception",
+                   help="namespace of the output topics not named by --topic")
+    add_topic_option(p)
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out bag")
     p.add_argument("--storage", choices=("mcap", "sqlite3"), default="mcap")
     p.add_argument("--quantize", action="store_true", help="uint8 probability fields")
     p.add_argument("--kitti-results", type=Path, default=None)
@@ -288,6 +335,13 @@ def main(argv=None) -> int:
     p.add_argument("--sequences", type=int, nargs="*", default=None)
     common(p, heads=False)
     a = ap.parse_args(argv)
+    if a.cmd == "bag":
+        if (a.out.exists() or a.out.is_symlink()) and not a.overwrite:
+            ap.error(f"{a.out} exists: pass --overwrite or choose another --out")
+        topics = dict(a.topic)
+        if a.points_topic and topics.get("points", a.points_topic) != a.points_topic:
+            ap.error(f"--points-topic {a.points_topic} and --topic points={topics['points']} "
+                     "disagree")
 
     if a.cmd == "semantickitti":
         perception = Perception(detector=False, segmenter=True, heads=0, model_dir=a.models)
@@ -297,11 +351,14 @@ def main(argv=None) -> int:
     perception = Perception(detector=not a.no_detector, segmenter=not a.no_segmenter,
                             heads=a.heads, model_dir=a.models)
     if a.cmd == "bag":
-        if a.out.exists():
-            raise SystemExit(f"{a.out} exists")
-        stats = process_bag(a.src, a.out, perception, points_topic=a.points_topic, prefix=a.prefix,
-                            storage=a.storage, quantize=a.quantize, kitti_results=a.kitti_results,
-                            quiet=a.quiet)
+        try:
+            stats = process_bag(a.src, a.out, perception, points_topic=a.points_topic,
+                                prefix=a.prefix, topics=topics, storage=a.storage,
+                                quantize=a.quantize, kitti_results=a.kitti_results,
+                                quiet=a.quiet, overwrite=a.overwrite)
+        except KeyboardInterrupt:
+            print(f"\ninterrupted: {a.out} not written", file=sys.stderr)
+            return 130
         print(f"{stats['clouds']} clouds, {stats['model_ms_per_cloud']:.0f} ms of models per cloud "
               f"-> {a.out}")
     elif a.cmd == "split":

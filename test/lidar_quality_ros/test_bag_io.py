@@ -3,7 +3,7 @@ import pytest
 from lidar_quality_core.pointcloud import create_xyz_cloud, xyz_intensity
 from lidar_quality_msgs.msg import BoxVariance, BoxVarianceArray
 from rclpy.qos import HistoryPolicy, ReliabilityPolicy
-from realbags import REAL_BAGS, real_bag
+from realbags import REAL_BAGS, humble_metadata, real_bag
 from std_msgs.msg import Header
 from vision_msgs.msg import Detection3D, Detection3DArray
 
@@ -59,41 +59,6 @@ def test_message_class_and_bad_storage(tmp_path):
 
 
 # --------------------------------------------------------------------------- any bag
-def humble_metadata(bag, *, storage_identifier="", serialization_format="", db_format=None):
-    """Rewrite ``bag``'s metadata.yaml as older rosbag2 versions wrote it: version 5, the
-    QoS profiles as one YAML string with numeric policies, no type hashes; with an empty
-    ``storage_identifier`` and topic ``serialization_format`` (as in recordings we were
-    given). ``db_format``: also set the sqlite3 file's own topic format (old recorders
-    left it empty there too)."""
-    import sqlite3
-
-    import yaml
-
-    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-    qos = ("- history: 1\n  depth: 5\n  reliability: 2\n  durability: 2\n  deadline:\n"
-           "    sec: 9223372036\n    nsec: 854775807\n  lifespan:\n    sec: 9223372036\n"
-           "    nsec: 854775807\n  liveliness: 1\n  liveliness_lease_duration:\n"
-           "    sec: 9223372036\n    nsec: 854775807\n  avoid_ros_namespace_conventions: false")
-    old = {"version": 5, "storage_identifier": storage_identifier,
-           "duration": meta["duration"], "starting_time": meta["starting_time"],
-           "message_count": meta["message_count"],
-           "topics_with_message_count": [
-               {"topic_metadata": {"name": t["topic_metadata"]["name"],
-                                   "type": t["topic_metadata"]["type"],
-                                   "serialization_format": serialization_format,
-                                   "offered_qos_profiles": qos},
-                "message_count": t["message_count"]}
-               for t in meta["topics_with_message_count"]],
-           "compression_format": "", "compression_mode": "",
-           "relative_file_paths": meta["relative_file_paths"], "files": meta["files"]}
-    (bag / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": old},
-                                                      sort_keys=False))
-    if db_format is not None:
-        (db,) = bag.glob("*.db3")
-        with sqlite3.connect(db) as c:
-            c.execute("UPDATE topics SET serialization_format = ?", (db_format,))
-
-
 def _small_bag(path, storage):
     h = Header(frame_id="lidar")
     with BagWriter(path, storage=storage) as w:

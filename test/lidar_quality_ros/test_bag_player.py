@@ -10,6 +10,7 @@ import pytest
 from lidar_quality_core.pointcloud import create_xyz_cloud
 from lidar_quality_msgs.msg import BoxVariance, BoxVarianceArray
 from node_shell_checks import assert_declared_with_descriptions, executable, wait_until
+from realbags import REAL_BAGS, humble_metadata, real_bag
 from rclpy.qos import (DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy,
                        qos_profile_sensor_data)
 from rosgraph_msgs.msg import Clock
@@ -267,3 +268,55 @@ def test_installed_executable_loops_until_signal(ros, tmp_path, signame):
     out, _ = proc.communicate(timeout=20)
     assert proc.returncode == 0, out
     assert "Traceback" not in out and "played" in out
+
+
+# --------------------------------------------------------------------------- any bag
+def packets_and_clouds_bag(path, packets):
+    """An sqlite3 bag as older recorders left it (metadata v5, empty storage identifier and
+    serialization format, in the .db3 too) with a driver's packet topic (``packets``: (type,
+    raw bytes) per message; no rclpy class here) beside /pts clouds."""
+    sent = []
+    with BagWriter(path, storage="sqlite3") as w:
+        for i, (msgtype, raw) in enumerate(packets):
+            log = T0 + i * PERIOD
+            w.write("/driver/packets", msgtype, log, raw)
+            h = Header(frame_id="lidar")
+            h.stamp.sec, h.stamp.nanosec = divmod(log, 10**9)
+            cloud = create_xyz_cloud(h, np.full((10, 3), i, np.float32))
+            w.write("/pts", "sensor_msgs/msg/PointCloud2", log + 1, cloud)
+            sent.append(cloud)
+    humble_metadata(path, db_format="")
+    return sent
+
+
+def test_unknown_types_are_skipped_with_one_warning_and_the_rest_played(ros, tmp_path, capfd):
+    name = min(REAL_BAGS)
+    try:       # the real packets where they are, else bytes of our own under a driver's type
+        from lidar_quality_ros.bag_io import read_bag
+        packets = [(m.msgtype, m.raw) for m in read_bag(real_bag(name))][:2] * 2
+    except pytest.skip.Exception:
+        packets = [("velodyne_msgs/msg/VelodyneScan", bytes([0, 1, 0, 0]) + bytes(64))] * 4
+    sent = packets_and_clouds_bag(tmp_path / "b", packets)
+    col = ros.collector(PointCloud2, "/pts", qos_profile_sensor_data)  # as recorded
+    player = play(ros, tmp_path / "b")
+    assert col.wait_for(len(sent), timeout=10.0) and col.messages == sent
+    msgtype = packets[0][0]
+    assert player.summary()["skipped_types"] == {msgtype: ["/driver/packets"]}
+    assert list(player.summary()["topics"]) == ["/pts"]
+    err = capfd.readouterr().err
+    assert err.count(msgtype) == 1 and "not played" in err
+
+
+@pytest.mark.parametrize("name", sorted(REAL_BAGS))
+def test_real_recordings_without_a_traceback(ros, tmp_path, name):
+    """A raw-packet recording alone: nothing is playable here; said once, clearly (exit 2,
+    a node that cannot start), never a traceback."""
+    bag = real_bag(name)
+    topic, msgtype, _, _ = REAL_BAGS[name]
+    proc = subprocess.run([sys.executable, "-m", "lidar_quality_ros.bag_player", str(bag)],
+                          capture_output=True, text=True, timeout=60)
+    out = proc.stdout + proc.stderr
+    assert proc.returncode == 2, out
+    assert "Traceback" not in out
+    assert out.count(f"message type {msgtype} (topic {topic}) is not available here") == 1
+    assert "nothing to play" in out and f"{topic}: {msgtype}" in out

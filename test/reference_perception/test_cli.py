@@ -171,3 +171,78 @@ def test_kitti_dataset_without_calibration(sim_dir, tmp_path, capsys):
     for k, f in enumerate(fids):
         boxes = detector_boxes(perception, root / "training" / "velodyne" / f"{f}.bin")
         assert_written_boxes(ds.box[ds.frame == k], boxes)
+
+
+# ------------------------------------------------------------------ any bag
+def users_bag(src, dst, *, break_cloud: int | None = None):
+    """``src`` as a user's recording: the cloud on an Autoware topic, a driver's packet type
+    unknown here beside it, older sqlite3 metadata; ``break_cloud``: that cloud truncated."""
+    from lidar_quality_ros.bag_io import BagWriter
+    from rclpy.serialization import deserialize_message, serialize_message
+    from realbags import humble_metadata
+    from sensor_msgs.msg import PointCloud2
+
+    with BagWriter(dst, storage="sqlite3") as w:
+        clouds = 0
+        for m in read_bag(src):
+            if m.topic != "/lidar/points":
+                continue
+            raw = m.raw
+            if clouds == break_cloud:
+                msg = deserialize_message(raw, PointCloud2)
+                msg.data = bytes(msg.data)[:len(msg.data) - 5]
+                raw = serialize_message(msg)
+            clouds += 1
+            w.write("/driver/packets", "velodyne_msgs/msg/VelodyneScan", m.stamp_ns - 1,
+                    bytes([0, 1, 0, 0]) + bytes(100))
+            w.write("/sensing/lidar/top/pointcloud", m.msgtype, m.stamp_ns, raw)
+    humble_metadata(dst, storage_identifier="", serialization_format="")
+
+
+def test_bag_topics_unknown_types_and_atomic_output(sim_dir, tmp_path, capsys):
+    """--topic names the input cloud and outputs: the same outputs as under the default
+    names; a packet type unknown here is copied unchanged with one warning; a run that
+    fails midway (an unreadable cloud) leaves no output, the next needs no --overwrite."""
+    src = sim_dir / "bags" / "seq_00"
+    users = tmp_path / "users"
+    users_bag(src, users)
+    ref, out = tmp_path / "ref", tmp_path / "out"
+    common = ["--quiet", "--heads", "1"]
+    assert main(["bag", "--in", str(src), "--out", str(ref), *common]) == 0
+    assert main(["bag", "--in", str(users), "--out", str(out), *common,
+                 "--topic", "points=/sensing/lidar/top/pointcloud",
+                 "--topic", "detections=/perception/object_recognition/objects",
+                 "--topic", "head_0/variance=/ensemble/0/variance"]) == 0
+    err = capsys.readouterr().err
+    assert err.count("velodyne_msgs/msg/VelodyneScan") == 1 and "copied unchanged" in err
+    topics = bag_topics(out)
+    assert topics["/driver/packets"] == "velodyne_msgs/msg/VelodyneScan"
+    assert [m.raw for m in read_bag(out, {"/driver/packets"})] == [
+        m.raw for m in read_bag(users, {"/driver/packets"})]
+    renamed = {"/perception/detections": "/perception/object_recognition/objects",
+               "/perception/head_0/variance": "/ensemble/0/variance"}
+    for t in ("/perception/detections", "/perception/proposals", "/perception/segmentation",
+              "/perception/head_0", "/perception/head_0/variance"):
+        new = renamed.get(t, t)
+        assert new in topics and (t == new or t not in topics)
+        a = [m.decode() for m in read_bag(ref, {t})]
+        b = [m.decode() for m in read_bag(out, {new})]
+        assert len(a) == 2 and a == b, t
+    # a user's bag where the second cloud cannot be read: no output at all, said clearly
+    broken = tmp_path / "broken"
+    users_bag(src, broken, break_cloud=1)
+    target = tmp_path / "target"
+    argv = ["bag", "--in", str(broken), "--out", str(target), *common,
+            "--topic", "points=/sensing/lidar/top/pointcloud"]
+    with pytest.raises(SystemExit, match="cannot be read.*not written"):
+        main(argv)
+    assert not target.exists() and not list(tmp_path.glob(".target*"))
+    argv[2] = str(users)
+    assert main(argv) == 0 and bag_topics(target)["/perception/detections"]
+    with pytest.raises(SystemExit) as e:      # a complete one: only with --overwrite
+        main(argv)
+    assert e.value.code == 2 and "--overwrite" in capsys.readouterr().err
+    assert main(argv + ["--overwrite"]) == 0
+    with pytest.raises(SystemExit) as e:
+        main(["bag", "--in", str(users), "--out", str(tmp_path / "x"), "--topic", "cloud=/a"])
+    assert e.value.code == 2 and "unknown topic key 'cloud'" in capsys.readouterr().err

@@ -1,5 +1,6 @@
 """Where the real rosbag2 recordings are (``$LQ_REALBAGS`` or ``<repo>/../shared/realbags``):
-four raw-packet bags of a ROS 2 lidar driver, with older metadata (see their README)."""
+four raw-packet bags of a ROS 2 lidar driver, with older metadata (see their README); and
+``humble_metadata``, which gives a bag we write the metadata such recordings have."""
 from __future__ import annotations
 
 import os
@@ -30,3 +31,38 @@ def real_bag(name: str) -> Path:
         pytest.skip(f"real rosbag2 recording {name} not found in {realbags_dir()} "
                     "(set LQ_REALBAGS)")
     return path
+
+
+def humble_metadata(bag, *, storage_identifier="", serialization_format="", db_format=None):
+    """Rewrite ``bag``'s metadata.yaml as older rosbag2 versions wrote it: version 5, the
+    QoS profiles as one YAML string with numeric policies, no type hashes; with an empty
+    ``storage_identifier`` and topic ``serialization_format`` (as in recordings we were
+    given). ``db_format``: also set the sqlite3 file's own topic format (old recorders
+    left it empty there too)."""
+    import sqlite3
+
+    import yaml
+
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    qos = ("- history: 1\n  depth: 5\n  reliability: 2\n  durability: 2\n  deadline:\n"
+           "    sec: 9223372036\n    nsec: 854775807\n  lifespan:\n    sec: 9223372036\n"
+           "    nsec: 854775807\n  liveliness: 1\n  liveliness_lease_duration:\n"
+           "    sec: 9223372036\n    nsec: 854775807\n  avoid_ros_namespace_conventions: false")
+    old = {"version": 5, "storage_identifier": storage_identifier,
+           "duration": meta["duration"], "starting_time": meta["starting_time"],
+           "message_count": meta["message_count"],
+           "topics_with_message_count": [
+               {"topic_metadata": {"name": t["topic_metadata"]["name"],
+                                   "type": t["topic_metadata"]["type"],
+                                   "serialization_format": serialization_format,
+                                   "offered_qos_profiles": qos},
+                "message_count": t["message_count"]}
+               for t in meta["topics_with_message_count"]],
+           "compression_format": "", "compression_mode": "",
+           "relative_file_paths": meta["relative_file_paths"], "files": meta["files"]}
+    (bag / "metadata.yaml").write_text(yaml.safe_dump({"rosbag2_bagfile_information": old},
+                                                      sort_keys=False))
+    if db_format is not None:
+        (db,) = bag.glob("*.db3")
+        with sqlite3.connect(db) as c:
+            c.execute("UPDATE topics SET serialization_format = ?", (db_format,))
