@@ -157,18 +157,22 @@ class Runner:
     topics: dict
     required: tuple
     run: Callable
+    processor: object = None  # its ``transforms`` are set per bag (/tf_static, /tf)
 
 
 def _lmd(p: dict, topics: dict) -> Runner:
     from lmd_ros.pipeline import LmdProcessor
 
     c = node_config("lmd", p)
-    proc = LmdProcessor(c.settings, _models("lmd", c), min_confidence=c.min_confidence)
+    proc = LmdProcessor(c.settings, _models("lmd", c), min_confidence=c.min_confidence,
+                        transform_inputs=c.transform_inputs,
+                        transform_tolerance=c.transform_tolerance)
     mode = c.settings.proposal_mode
     keys = ["points"] + (["detections"] if mode != "exact" else []) + (
         ["proposals"] if mode != "none" else [])
     return Runner("lmd", {k: topic_of(k, topics) for k in keys}, tuple(keys),
-                  lambda get: proc.process(get("points"), get("detections"), get("proposals")))
+                  lambda get: proc.process(get("points"), get("detections"), get("proposals")),
+                  processor=proc)
 
 
 def _lms(p: dict, topics: dict) -> Runner:
@@ -188,7 +192,9 @@ def _mimo(p: dict, names: dict) -> Runner:
 
     c = node_config("mimo", p)
     s = c.settings
-    proc = MimoProcessor(s, _models("mimo", c), scores=c.output_scores)
+    proc = MimoProcessor(s, _models("mimo", c), scores=c.output_scores,
+                         transform_inputs=c.transform_inputs,
+                         transform_tolerance=c.transform_tolerance)
     K = s.num_heads
     topics = {f"head_{k}": topic_of(f"head_{k}", names) for k in range(K)}
     if c.use_variances:
@@ -217,7 +223,7 @@ def _mimo(p: dict, names: dict) -> Runner:
         out.issues.update(undecodable)
         return out
 
-    return Runner("mimo", topics, (), run)
+    return Runner("mimo", topics, (), run, processor=proc)
 
 
 def build_runners(nodes=tuple(NODES), params: dict | None = None,
@@ -403,6 +409,33 @@ def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
             "no_output": no_output_reasons(nodes, sorted(info.topics), dict(late))}
 
 
+def _transform_feed(runners, warn) -> Callable:
+    """Fresh transform buffers for this bag's processors that transform their inputs, and
+    ``feed(message)``: /tf_static and /tf (tf2_msgs/msg/TFMessage) go into them, as the
+    nodes' TfListener does."""
+    from lidar_quality_core.transforms import TransformBuffer, add_tf_message
+
+    procs = [r.processor for r in runners if getattr(r.processor, "transform_inputs", False)]
+    for proc in procs:
+        proc.transforms = TransformBuffer(extrapolation_tolerance_s=proc.transform_tolerance)
+
+    def feed(m) -> None:
+        if not procs or m.topic not in ("/tf_static", "/tf") or \
+                m.msgtype != "tf2_msgs/msg/TFMessage":
+            return
+        try:
+            msg = m.decode()
+        except Exception as exc:  # noqa: BLE001 - rclpy raises RuntimeError subclasses
+            warn("bag", "tf", f"{m.topic} message not decoded: {exc}")
+            return
+        for proc in procs:
+            bad = add_tf_message(proc.transforms, msg, m.topic == "/tf_static")
+        if bad:
+            warn("bag", "tf", f"{m.topic}: {len(bad)} transform(s) refused: {bad[0]}")
+
+    return feed
+
+
 def _write(in_bag: Path, out_bag: Path, runners, info, wanted, stats, warn, bar):
     from lidar_quality_ros.bag_io import BagWriter, read_bag
     from lidar_quality_ros.qos import output_qos
@@ -412,6 +445,7 @@ def _write(in_bag: Path, out_bag: Path, runners, info, wanted, stats, warn, bar)
     pending: dict[int, _Frame] = {}
     backlog: list = []                 # input messages read, not yet written (log order)
     last_done, late, copied, n_frames = None, Counter(), 0, 0
+    feed_tf = _transform_feed(runners, warn)
     with BagWriter(out_bag) as w:
         def write(topic, msgtype, log_ns, msg):
             qos = [output_qos(5 if topic == "/lms/output/points" else 10)]
@@ -443,6 +477,7 @@ def _write(in_bag: Path, out_bag: Path, runners, info, wanted, stats, warn, bar)
 
         for m in read_bag(in_bag):
             backlog.append(m)
+            feed_tf(m)
             if m.topic in wanted:
                 try:
                     stamp = stamp_of_bytes(m.raw)

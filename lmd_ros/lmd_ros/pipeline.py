@@ -401,7 +401,8 @@ class LmdProcessor:
     """
 
     def __init__(self, settings: LmdSettings, models, *, min_confidence: float = 0.0,
-                 transforms=None, transform_inputs: bool = True):
+                 transforms=None, transform_inputs: bool = True,
+                 transform_tolerance: float = 0.05):
         settings.validate()
         if tuple(models.feature_names) != settings.feature_names():
             raise ValueError("models were loaded for another feature schema than the settings'")
@@ -411,6 +412,8 @@ class LmdProcessor:
         self.models = models
         self.min_confidence = float(min_confidence)
         self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
+        #: for whoever builds the buffer (process_bag: one per bag)
+        self.transform_tolerance = float(transform_tolerance)
         from lidar_quality_msgs.msg import DetectionQuality, DetectionQualityArray
         from vision_msgs.msg import Detection3DArray
         self._Quality, self._QualityArray = DetectionQuality, DetectionQualityArray

@@ -578,12 +578,15 @@ class MimoProcessor:
     ``transforms`` may be replaced between frames."""
 
     def __init__(self, settings: MimoSettings, models, *, scores: str = "confidence",
-                 transforms=None, transform_inputs: bool = True):
+                 transforms=None, transform_inputs: bool = True,
+                 transform_tolerance: float = 0.05):
         settings.validate()
         if scores not in OUTPUT_SCORES:
             raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
         self.settings, self.models, self.scores = settings, models, scores
         self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
+        #: for whoever builds the buffer (process_bag: one per bag)
+        self.transform_tolerance = float(transform_tolerance)
 
     def process(self, heads: Sequence, variances: Sequence | None = None, cloud=None, *,
                 markers: bool = False) -> MimoFrameOutputs:

@@ -369,3 +369,69 @@ def test_failed_run_leaves_no_output_and_needs_no_overwrite(bag, tmp_path, capsy
                  "--no-progress"]) == 0
     assert [m[:3] for m in messages(tmp_path / "many" / bag.name)] == [m[:3] for m in done]
     capsys.readouterr()
+
+
+def test_detections_in_another_frame_with_tf_static(tmp_path):
+    """Issue 16 (frames): detections / proposals in base_link and /tf_static base_link <-
+    lidar_top in the bag give the outputs of the same scene recorded in one frame; without
+    the transform every frame is dropped as no_transform."""
+    import copy
+
+    from geometry_msgs.msg import TransformStamped
+    from lidar_quality_core import synthetic
+    from lidar_quality_core.boxes import detections_to_arrays, yaw_to_quaternion
+    from lidar_quality_core.transforms import Transform
+    from lmd_frames import frame_messages
+    from std_msgs.msg import Header
+    from tf2_msgs.msg import TFMessage
+
+    t_base_lidar = Transform.from_yaw(0.3, (1.2, 0.1, 1.8))
+
+    def moved(msg):
+        out = copy.deepcopy(msg)
+        out.header.frame_id = "base_link"
+        b, _ = t_base_lidar.apply_boxes(detections_to_arrays(msg).boxes)
+        for d, row, q in zip(out.detections, b, yaw_to_quaternion(b[:, 6])):
+            p, o = d.bbox.center.position, d.bbox.center.orientation
+            p.x, p.y, p.z = row[:3].tolist()
+            o.x, o.y, o.z, o.w = q.tolist()
+        return out
+
+    def write(path, base_link, tf):
+        with BagWriter(path) as w:
+            if tf:
+                ts = TransformStamped()
+                ts.header.frame_id, ts.child_frame_id = "base_link", "lidar_top"
+                v, r = ts.transform.translation, ts.transform.rotation
+                v.x, v.y, v.z = t_base_lidar.translation.tolist()
+                r.x, r.y, r.z, r.w = t_base_lidar.rotation.tolist()
+                w.write("/tf_static", "tf2_msgs/msg/TFMessage", 1, TFMessage(transforms=[ts]))
+            for k in range(2):
+                f = synthetic.synthetic_frame(n_points=10_000, n_objects=8, n_proposals=80,
+                                              seed=40 + k)
+                cloud, dets, props = frame_messages(f, k + 1)
+                for m in (dets, props):  # own headers: moved() changes one frame_id
+                    m.header = Header(stamp=cloud.header.stamp, frame_id="lidar_top")
+                if base_link:
+                    dets, props = moved(dets), moved(props)
+                for topic, msg in ((DEFAULT_TOPICS["detections"], dets),
+                                   (DEFAULT_TOPICS["proposals"], props)):
+                    w.write(topic, "vision_msgs/msg/Detection3DArray", (k + 1) * 10**9, msg)
+                w.write(DEFAULT_TOPICS["points"], "sensor_msgs/msg/PointCloud2",
+                        (k + 1) * 10**9, cloud)
+
+    runs = {}
+    for name, base_link, tf in (("one", False, False), ("base", True, True),
+                                ("missing", True, False)):
+        write(tmp_path / name, base_link, tf)
+        runs[name] = process_bag(tmp_path / name, tmp_path / f"{name}_out", nodes=("lmd",),
+                                 progress=False)["nodes"]["lmd"]
+    assert runs["missing"]["dropped"] == {"no_transform": 2} and runs["missing"]["frames_out"] == 0
+    assert runs["base"]["frames_out"] == 2 and runs["base"]["issues"] == {}
+    one, base = (decoded(tmp_path / f"{n}_out", "/lmd/output/quality") for n in ("one", "base"))
+    assert [q.header.frame_id for q in base] == ["base_link"] * 2
+    for a, b in zip(one, base):
+        np.testing.assert_allclose([e.confidence for e in b.detections],
+                                   [e.confidence for e in a.detections], rtol=0, atol=1e-9)
+        np.testing.assert_allclose([e.predicted_iou for e in b.detections],
+                                   [e.predicted_iou for e in a.detections], rtol=0, atol=1e-9)
