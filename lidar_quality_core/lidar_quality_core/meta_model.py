@@ -24,11 +24,11 @@ no rclpy).
   ``training_data["merge_settings"]``) with the settings in use, before loading. What
   changes the meaning of a feature must be equal, or the model is refused with the
   setting, both values and the fix: LMD ``proposal_mode``, ``class_names`` (in order),
-  ``class_score_features``; LMS ``class_names``, image geometry (``channels``, ``width``,
-  ``fov_up_deg``, ``fov_down_deg``), ``min_segment_points``; MIMO ``use_points``,
+  ``class_score_features``; LMS ``class_names``, ``min_segment_points``; MIMO ``use_points``,
   ``class_names``, the merge's input convention (``score_type``, ``background_index``)
   and yaw ETV (``yaw_deviation``). What only shifts the feature distribution warns,
-  naming both values: LMD thresholds of the mode in use; LMS ``use_ring``,
+  naming both values: LMD thresholds of the mode in use; LMS image geometry
+  (``channels``, ``width``, ``fov_up_deg``, ``fov_down_deg``), ``use_ring``,
   ``sum_tolerance``; MIMO ``num_heads``, ``eps``, ``voting``, ``min_cluster_size``,
   ``class_aware``, ``temperature``, ``yaw_variance``. Not compared: input conventions
   that the settings undo (LMS ``ring_field``, ``ring_zero_top``) and MIMO ``dbscan``
@@ -344,9 +344,13 @@ def _lmd_rules() -> tuple[SettingRule, ...]:
 
 
 def _lms_rules() -> tuple[SettingRule, ...]:
+    # Another image geometry (a sensor preset on models trained for our simulated HDL-64)
+    # keeps the feature schema: it warns (lms_node also shows it in /diagnostics,
+    # model.geometry) instead of refusing, since the user's sensor is what it is (issue 16).
     def geometry(key, option):
-        return SettingRule(key, fix=f"set {key} to {{model}} if that is your sensor's image, "
-                                    f"or retrain for it (lms-train {option} {{current}})")
+        return SettingRule(key, exact=False,
+                           fix=f"set {key} to {{model}} if that is your sensor's image, "
+                               f"or retrain for it (lms-train {option} {{current}})")
 
     return (
         SettingRule("class_names",

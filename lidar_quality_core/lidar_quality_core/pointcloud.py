@@ -25,6 +25,7 @@ __all__ = [
     "cloud_to_structured",
     "read_fields",
     "check_xyz_fields",
+    "valid_points",
     "set_cloud_data",
     "xyz_intensity",
     "finite_mask",
@@ -305,6 +306,19 @@ def finite_mask(xyz: np.ndarray) -> np.ndarray:
     mask = np.isfinite(xyz[..., 0])
     for j in range(1, xyz.shape[-1]):
         mask &= np.isfinite(xyz[..., j])
+    return mask
+
+
+def valid_points(xyz: np.ndarray) -> np.ndarray:
+    """(N,) bool: the point has finite coordinates and is not exactly (0, 0, 0), the
+    padding of organized clouds (Ouster-style drivers write no-return pixels as zeros).
+    Both kinds are no measurement: methods leave them out of their features and count
+    them (``~valid_points(xyz)`` minus ``~finite_mask(xyz)`` = the padding)."""
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"valid_points expects (N, 3) coordinates, got shape {xyz.shape}")
+    mask = finite_mask(xyz)
+    mask &= (xyz[:, 0] != 0) | (xyz[:, 1] != 0) | (xyz[:, 2] != 0)
     return mask
 
 

@@ -15,9 +15,9 @@ Outputs (header copied from ``input/points``):
 * ``output/points``: the input points, same count, order and layout, with fields
   ``x, y, z, intensity, label`` (uint16 predicted class), ``segment`` (int32, -1: none),
   ``confidence`` (float32, P(segment is a true positive, IoU_adj > 0)) and
-  ``predicted_iou`` (float32); NaN for points without a segment (non-finite, outside the
-  vertical field of view, unusable probabilities) or in a segment with fewer than
-  ``min_segment_points`` projected points;
+  ``predicted_iou`` (float32); NaN for points without a segment (non-finite or (0, 0, 0),
+  outside the image, lost their pixel to a nearer point, unusable probabilities) or in a
+  segment with fewer than ``min_segment_points`` projected points;
 * ``output/segments``: SegmentQualityArray, every segment in id order (``segment`` of
   ``output/points`` is its id), excluded ones with NaN confidence;
 * ``output/markers``: centroids of the scored segments coloured by confidence
@@ -31,10 +31,14 @@ class map), subscribes, calls the processor and publishes. A cloud that cannot b
 (missing field, wrong type, point counts that differ) drops the frame (counted as
 ``malformed_cloud``); renormalized or unusable probabilities raise throttled warnings,
 the frame is processed, as is a cloud without an intensity field (the intensity metrics
-read 0; throttled warning).
+read 0; throttled warning). The range image comes from the ``sensor`` preset or the
+geometry parameters; the share of points without a pixel is a /diagnostics value
+(``points.no_pixel_ratio``) with WARN / ERROR thresholds, and models trained on another
+image geometry load with a logged warning and the value ``model.geometry``.
 """
 from __future__ import annotations
 
+from diagnostic_msgs.msg import DiagnosticStatus
 from lidar_quality_msgs.msg import SegmentQualityArray
 from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.qos import output_qos
@@ -42,7 +46,7 @@ from lidar_quality_ros.runner import run_node
 from sensor_msgs.msg import PointCloud2
 from visualization_msgs.msg import MarkerArray
 
-from .pipeline import LmsParameters, LmsProcessor, load_models
+from .pipeline import LmsParameters, LmsProcessor, geometry_mismatch, load_models
 
 
 class LmsNode(QualityNode):
@@ -53,31 +57,50 @@ class LmsNode(QualityNode):
             p.settings.validate()
         except ValueError as exc:
             raise ValueError(f"invalid parameter: {exc}") from None
-        self.settings, self.separate = p.settings, p.separate_probabilities
+        self.separate = p.separate_probabilities
+        self.settings = p.settings.resolved()
         self.models = load_models(p, warn=self.get_logger().warning)
         self.processor = LmsProcessor(self.settings, self.models)
+        self._errors: frozenset = frozenset()
 
         self.create_output(PointCloud2, "output/points", output_qos(5))
         self.create_output(SegmentQualityArray, "output/segments")
         self.create_markers_output(p.publish_markers, MarkerArray)
-        for key, value in (("classes", len(self.settings.class_names)),
+        s = self.settings
+        # the image in use and, when the models were trained on another one, what they
+        # were trained on (load_models logged the warning)
+        for key, value in (("classes", len(s.class_names)),
                            ("model.confidence", self.models.confidence_model_id),
-                           ("model.iou", self.models.iou_model_id)):
+                           ("model.iou", self.models.iou_model_id),
+                           ("image", f"{s.sensor or 'custom'}: {s.channels} x {s.width}"),
+                           ("model.geometry",
+                            geometry_mismatch(self.models, s) or "as trained")):
             self.diag.set_value(key, value)
         topics = [(PointCloud2, "input/points")]
         if self.separate:
             topics.append((PointCloud2, "input/probabilities"))
         self.start_inputs(topics, hints={"input/probabilities": "set separate_probabilities: "
                                          "false if the probabilities are fields of input/points"})
-        s = self.settings
         self.get_logger().info(
-            f"lms_node ready ({len(s.class_names)} classes, image {s.channels} x {s.width}, "
+            f"lms_node ready ({len(s.class_names)} classes, image {s.channels} x {s.width}"
+            f"{f' ({s.sensor})' if s.sensor else ''}, "
             f"models {self.models.confidence_model_id} / {self.models.iou_model_id}), "
             f"inputs: {', '.join(self.inputs.topics)}")
 
     def process(self, messages: list, markers: bool):
-        return self.processor.process(messages[0], messages[1] if self.separate else None,
-                                      markers=markers)
+        out = self.processor.process(messages[0], messages[1] if self.separate else None,
+                                     markers=markers)
+        for key, value in out.values.items():
+            self.diag.set_value(key, round(float(value), 4))
+        self._errors = out.errors
+        return out
+
+    def report_issues(self, issues: dict[str, str]) -> None:
+        """As the base class, with the processor's ERROR-level causes (a frame whose share
+        of points without a pixel exceeds no_pixel_error_ratio) raised to ERROR."""
+        super().report_issues(issues)
+        for key in self._errors & issues.keys():
+            self.diag.warn(key, issues[key], DiagnosticStatus.ERROR)
 
 
 def main(args=None) -> int:

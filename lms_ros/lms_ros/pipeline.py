@@ -27,25 +27,52 @@ Probability checks (per point, vectorized)
   input the tolerance is widened by the quantization bound n * 0.5 / 255 (each rounded
   value may be off by half a step), so correctly quantized softmax outputs are not
   flagged.
+Image geometry
+  ``sensor`` selects a preset of ``config/sensors.yaml`` (or ``sensors_file``): its beam
+  elevation table (one row per beam) and width (360 deg / the azimuth resolution at 10 Hz)
+  replace ``channels``, ``width``, ``fov_up_deg`` / ``fov_down_deg`` and
+  ``beam_elevations_deg`` (:meth:`LmsSettings.resolved`). Without a preset, a
+  ``beam_elevations_deg`` table gives one row per beam; without either, ``channels`` equal
+  rows from ``fov_up_deg`` down to ``fov_down_deg``.
 Ring
-  With ``use_ring`` and a ``ring_field`` (integer) in the points cloud, the image row is
-  the ring: ``row = channels - 1 - ring`` (Velodyne drivers number ring 0 = lowest beam,
-  our row 0 is the top) unless ``ring_zero_top`` (``lidar_sim`` and Ouster: ring 0 =
-  top). Without a ring the row is the elevation bin of ``channels`` equal bins from
-  ``fov_up_deg`` down to ``fov_down_deg``. A ring field that is not an integer beam
-  index (a float / multi-value field, or a value outside ``[0, channels)`` at a finite
-  point: another field named by ``ring_field``, or ``channels`` below the sensor's beam
-  count) is not used: the frame takes the elevation rows and the processor reports it
-  (issue ``"ring"``). Chosen over dropping the frame or the out-of-range points: the
-  frame still gets segments and confidences over all its points, and the warning names
-  the setting to fix. ``LmsSettings.validate`` refuses a ``ring_field`` naming x, y, z
-  or an intensity field at start.
+  With ``use_ring`` the ring (beam index) field is the first of ``ring_field`` (``auto``:
+  ring, channel, laser_id, laser_number, laser, beam, beam_id, line, scan_line; or a
+  comma-separated list) that the cloud has. ``beam_rows`` says how it gives the row:
+  ``index``: ``row = channels - 1 - ring`` (Velodyne drivers number ring 0 = lowest beam,
+  our row 0 is the top) unless ``ring_zero_top`` (``lidar_sim`` and Ouster: ring 0 = top);
+  ``elevation``: each beam index's median elevation, estimated from the clouds and kept by
+  the processor (:class:`lidar_quality_core.lms.beams.BeamTable`), gives the row of the
+  elevation table that holds it, or without a table the beam's rank (highest = row 0), so
+  that any numbering works (nebula's laser order, bottom-up, top-down); ``auto``
+  (default): ``elevation`` with a preset or a table, else ``index`` (as before issue 16).
+  Without a ring field the row is the elevation bin of the point. A ring field that is not
+  an integer beam index (a float / multi-value field, or a value outside ``[0, channels)``
+  (index) / ``[0, MAX_CHANNELS)`` (elevation) at a valid point) is not used: the frame takes
+  the elevation rows and the processor reports it (issue ``"ring"``). Chosen over
+  dropping the frame or the out-of-range points: the frame still gets segments and
+  confidences over all its points, and the warning names the setting to fix.
+  ``LmsSettings.validate`` refuses a ``ring_field`` naming x, y, z or an intensity field.
+Invalid points
+  Non-finite coordinates and exact (0, 0, 0) (the padding of organized Ouster-style
+  clouds, :func:`lidar_quality_core.pointcloud.valid_points`) take no pixel and enter no
+  segment or metric; counted in ``points.invalid`` (the zeros also in ``points.padding``).
+Points without a pixel
+  Every point without a segment is counted once (:func:`point_accounting`):
+  ``points.invalid``, ``points.unprojected`` (a valid point outside the image: above or
+  below the vertical field of view, or a beam without a row) or ``points.occluded`` (it
+  lost its pixel to a nearer point and no 8-neighbour pixel of its class gave it a
+  segment). The share of the valid points without a pixel (unprojected + occluded) is the
+  per-frame value ``points.no_pixel_ratio``: above ``no_pixel_warn_ratio`` the frame
+  warns (issue ``"unprojected"``), above ``no_pixel_error_ratio`` at ERROR; the frame is
+  published either way.
 Outputs (:class:`LmsProcessor`)
   ``output/points``: the input points in the input order and layout (height / width),
   fields ``x, y, z, intensity`` (float32; intensity 0 when the input has none),
-  ``label`` (uint16 predicted class = argmax, lowest class on ties; :data:`NO_LABEL`
-  for unusable probabilities), ``segment`` (int32, -1: no segment: non-finite point,
-  outside the image, unusable probabilities or no pixel of its class around it),
+  ``label`` (uint16 predicted class = argmax, lowest class on ties, for every point with
+  usable probabilities, with or without a pixel or a segment; :data:`NO_LABEL` for
+  unusable probabilities), ``segment`` (int32, -1: no segment: invalid point (non-finite,
+  (0, 0, 0) padding, unusable probabilities), outside the image, or no pixel of its class
+  around it),
   ``confidence`` (float32, P(IoU_adj > 0) of its segment) and ``predicted_iou``
   (float32, predicted IoU_adj), both NaN for points without a segment or in a segment
   excluded from the meta models (SP < ``min_segment_points``).
@@ -55,6 +82,8 @@ Outputs (:class:`LmsProcessor`)
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -66,8 +95,9 @@ from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
 from lidar_quality_core.pointcloud import (CloudFormatError, check_xyz_fields,
-                                            cloud_to_structured, pack_cloud, set_cloud_data)
-from lidar_quality_core.lms import segment_metrics
+                                            cloud_to_structured, finite_mask, pack_cloud,
+                                            set_cloud_data, valid_points)
+from lidar_quality_core.lms import beams, segment_metrics
 from lidar_quality_core.lms.projection import RangeImageConfig
 from lidar_quality_core.lms.segment_metrics import SegmentResult, compute_segments
 
@@ -75,7 +105,8 @@ __all__ = ["CLASS_NAMES", "NO_LABEL", "INTENSITY_FIELDS", "MAX_CHANNELS", "MAX_W
            "MAX_PIXELS", "LmsSettings", "LmsInput",
            "decode", "frame_metrics", "default_model_paths", "LmsParameters", "load_models",
            "probability_field",
-           "LmsOutputs", "LmsProcessor", "OUTPUT_FIELDS"]
+           "LmsOutputs", "LmsProcessor", "OUTPUT_FIELDS", "geometry_mismatch",
+           "point_accounting", "sensor_presets", "shipped_sensors_file"]
 
 #: The reference segmenter's classes (``lidar_sim.classes.CLASS_NAMES``, copied: this
 #: package must not need the simulator at run time; a test checks they agree).
@@ -106,6 +137,26 @@ _LIMIT_WHY = {
 }
 
 
+def shipped_sensors_file() -> Path:
+    """``config/sensors.yaml`` of lms_ros: the installed share directory, else the source
+    tree (a workspace that was not installed)."""
+    try:
+        from ament_index_python.packages import get_package_share_directory
+
+        p = Path(get_package_share_directory("lms_ros")) / "config" / "sensors.yaml"
+        if p.is_file():
+            return p
+    except Exception:  # noqa: BLE001 - no ament index: the source tree
+        pass
+    return Path(__file__).resolve().parents[1] / "config" / "sensors.yaml"
+
+
+@functools.lru_cache(maxsize=8)
+def sensor_presets(path: str = "") -> dict[str, beams.SensorPreset]:
+    """The sensor presets of ``path`` (empty: :func:`shipped_sensors_file`)."""
+    return beams.load_presets(path or shipped_sensors_file())
+
+
 @dataclass(frozen=True)
 class LmsSettings:
     """Metric settings; a model is valid only for the class map it was trained with (its
@@ -115,6 +166,15 @@ class LmsSettings:
     class_names: tuple = param(
         list(CLASS_NAMES), "Class map: class c (the models' class order) reads the probability "
         "field named class_names[c] with '-' and ' ' replaced by '_'.")
+    sensor: str = param(
+        "", "Sensor preset (config/sensors.yaml or sensors_file: VLP-16, VLP-32C, HDL-32E, "
+        "HDL-64E, VLS-128, Pandar40P, Pandar64, PandarXT16, PandarXT32, PandarXT32M, "
+        "PandarQT64, PandarQT128, OT128, AT128, OS1-64, OS1-128, OS2-64, OS2-128): its beam "
+        "elevation table and width replace channels, width, fov_up_deg, fov_down_deg and "
+        "beam_elevations_deg; empty: those parameters.")
+    sensors_file: str = param(
+        "", "YAML file of sensor presets (the format of config/sensors.yaml); empty: the "
+        "shipped config/sensors.yaml.")
     channels: int = param(64, "Range image rows (sensor beams).", min_value=1)
     fov_up_deg: float = param(
         3.0, "Upper edge of the vertical field of view [deg] (rows from elevation when the "
@@ -122,13 +182,28 @@ class LmsSettings:
     fov_down_deg: float = param(
         -25.0, "Lower edge of the vertical field of view [deg], below fov_up_deg.",
         min_value=-90.0, max_value=90.0)
+    beam_elevations_deg: tuple = param(
+        "", "Per-beam elevation table [deg], comma-separated, any order (sensors with "
+        "non-uniform beams): one image row per beam, replacing channels and the uniform "
+        "fov_up_deg / fov_down_deg rows; empty: uniform rows.",
+        to_field=lambda v: beams.parse_degrees(v),
+        to_param=lambda v: ", ".join(f"{x:g}" for x in v))
     width: int = param(2048, "Range image columns = 360 deg / horizontal resolution.",
                        min_value=1)
     use_ring: bool = param(True, "Take the image row from the cloud's ring field when it has one.")
     ring_zero_top: bool = param(
         False, "Ring 0 is the top beam (Ouster, lidar_sim); false: ring 0 is the lowest beam "
-        "(Velodyne drivers).")
-    ring_field: str = param("ring", "Name of the ring (beam index) field.")
+        "(Velodyne drivers). Read by beam_rows index only.")
+    ring_field: str = param(
+        "auto", "Name of the ring (beam index) field, or comma-separated names tried in order; "
+        "auto: ring, channel, laser_id, laser_number, laser, beam, beam_id, line, scan_line.")
+    beam_rows: str = param(
+        "auto", "How a ring field gives the image row: index (row = ring, flipped unless "
+        "ring_zero_top), elevation (each beam's median elevation, estimated from the clouds "
+        "and kept: the row of the elevation table holding it, or without a table the beam's "
+        "rank, highest beam = row 0: any beam numbering), auto (elevation with a sensor "
+        "preset or beam_elevations_deg, else index).",
+        choices=("auto", "index", "elevation"))
     min_segment_points: int = param(
         10, "Segments with fewer projected points (SP) get no confidence (NaN); the models "
         "must be trained with the same value.", min_value=1)
@@ -136,10 +211,56 @@ class LmsSettings:
         0.02, "Per-point probabilities summing outside 1 +- this are renormalized (with a "
         "warning); uint8 input adds the quantization bound n * 0.5 / 255.",
         min_value=0.0, max_value=0.999)
+    no_pixel_warn_ratio: float = param(
+        0.05, "Share of a frame's valid points without a pixel (outside the image, or losing "
+        "their pixel to a nearer point and left without a segment) above which the frame "
+        "warns (issue 'unprojected', /diagnostics WARN); the frame is still published.",
+        min_value=0.0, max_value=1.0)
+    no_pixel_error_ratio: float = param(
+        0.25, "... above which /diagnostics reports ERROR (>= no_pixel_warn_ratio): the image "
+        "does not fit the sensor (set sensor, or channels / width / the field of view).",
+        min_value=0.0, max_value=1.0)
+
+    def preset(self) -> beams.SensorPreset | None:
+        """The selected sensor preset, or None; ``ValueError`` for an unknown name."""
+        if not self.sensor:
+            return None
+        presets = sensor_presets(self.sensors_file)
+        if self.sensor not in presets:
+            raise ValueError(f"sensor {self.sensor!r} is not a preset of "
+                             f"{self.sensors_file or 'config/sensors.yaml'} (known: "
+                             f"{', '.join(presets)}); add it there or leave sensor empty")
+        return presets[self.sensor]
+
+    def resolved(self) -> "LmsSettings":
+        """These settings with the image geometry in force: a preset's (``sensor``) or the
+        beam table's rows in ``channels``, ``beam_elevations_deg`` (top first), ``width``
+        and the outer bin edges in ``fov_up_deg`` / ``fov_down_deg`` (what the models'
+        recorded geometry is compared with)."""
+        p = self.preset()
+        table = p.elevations_deg if p else tuple(sorted(self.beam_elevations_deg, reverse=True))
+        if not table:
+            return self
+        cfg = RangeImageConfig.from_elevations(table, p.width if p else self.width)
+        e = cfg.row_edges_deg
+        return dataclasses.replace(self, channels=cfg.rows, width=cfg.cols,
+                                   beam_elevations_deg=cfg.elevations_deg,
+                                   fov_up_deg=round(float(e[0]), 4),
+                                   fov_down_deg=round(float(e[-1]), 4))
+
+    def has_table(self) -> bool:
+        """The rows follow a beam elevation table (a preset or beam_elevations_deg)."""
+        return bool(self.sensor or self.beam_elevations_deg)
+
+    def rows_by_elevation(self) -> bool:
+        """A ring field's beams take their rows from their elevations (``beam_rows``)."""
+        return self.beam_rows == "elevation" or (self.beam_rows == "auto" and self.has_table())
 
     def range_config(self) -> RangeImageConfig:
-        return RangeImageConfig.uniform(self.channels, self.width, self.fov_up_deg,
-                                        self.fov_down_deg)
+        r = self.resolved()
+        if r.beam_elevations_deg:
+            return RangeImageConfig.from_elevations(r.beam_elevations_deg, r.width)
+        return RangeImageConfig.uniform(r.channels, r.width, r.fov_up_deg, r.fov_down_deg)
 
     def metric_names(self) -> tuple[str, ...]:
         """The feature schema of the meta models (86 + 2n names)."""
@@ -159,14 +280,39 @@ class LmsSettings:
         fields = self.field_names()
         if len(set(fields)) != len(fields):
             raise ValueError(f"class_names give duplicate probability fields: {fields}")
-        if self.use_ring and self.ring_field in {"x", "y", "z"} | set(INTENSITY_FIELDS):
+        try:
+            ring_names = beams.ring_field_names(self.ring_field)
+        except ValueError as exc:
+            raise ValueError(str(exc)) from None
+        bad = set(ring_names) & ({"x", "y", "z"} | set(INTENSITY_FIELDS))
+        if self.use_ring and bad:
             raise ValueError(
-                f"ring_field {self.ring_field!r} names a coordinate / intensity field, not "
-                "the beam index: every frame would fall back to elevation rows (set "
-                "ring_field to the cloud's ring field, e.g. ring, or use_ring: false)")
-        clash = set(fields) & ({"x", "y", "z", self.ring_field} | set(INTENSITY_FIELDS))
+                f"ring_field {self.ring_field!r} names a coordinate / intensity field "
+                f"({', '.join(sorted(bad))}), not the beam index: every frame would fall back "
+                "to elevation rows (set ring_field to the cloud's ring field, e.g. ring, "
+                "auto, or use_ring: false)")
+        explicit = () if ring_names == beams.RING_FIELD_NAMES else ring_names
+        clash = set(fields) & ({"x", "y", "z"} | set(explicit) | set(INTENSITY_FIELDS))
         if clash:
             raise ValueError(f"class_names clash with point fields: {sorted(clash)}")
+        if self.beam_rows not in ("auto", "index", "elevation"):
+            raise ValueError(f"beam_rows must be auto, index or elevation, got "
+                             f"{self.beam_rows!r}")
+        for name in ("no_pixel_warn_ratio", "no_pixel_error_ratio"):
+            v = getattr(self, name)
+            if not (math.isfinite(v) and 0 <= v <= 1):
+                raise ValueError(f"{name} must be in [0, 1], got {v}")
+        if self.no_pixel_error_ratio < self.no_pixel_warn_ratio:
+            raise ValueError(f"no_pixel_error_ratio {self.no_pixel_error_ratio} is below "
+                             f"no_pixel_warn_ratio {self.no_pixel_warn_ratio}")
+        try:
+            table = tuple(self.beam_elevations_deg)
+            beams.parse_degrees(table)
+            if len(set(table)) != len(table):
+                raise ValueError("two beams at the same elevation")
+            self = self.resolved()      # an unknown sensor / unreadable presets file raise
+        except (ValueError, OSError) as exc:
+            raise ValueError(f"sensor / beam_elevations_deg: {exc}") from None
         for name, top in (("channels", MAX_CHANNELS), ("width", MAX_WIDTH)):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
@@ -182,8 +328,6 @@ class LmsSettings:
         if not (math.isfinite(up) and math.isfinite(down) and -90 <= down < up <= 90):
             raise ValueError(f"need -90 <= fov_down_deg < fov_up_deg <= 90, got "
                              f"fov_up_deg={up}, fov_down_deg={down}")
-        if not self.ring_field:
-            raise ValueError("ring_field must not be empty")
         m = self.min_segment_points
         if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1:
             raise ValueError(f"min_segment_points must be an integer >= 1, got {m!r}")
@@ -202,13 +346,17 @@ class LmsInput:
     ring: np.ndarray | None           # (N,) int32 image row (flipped unless ring_zero_top)
     probs: np.ndarray                 # (N, n) float32, checked and renormalized
     n_renormalized: int               # points whose probabilities were renormalized
-    n_invalid_points: int             # non-finite coordinates or unusable probabilities
+    n_invalid_points: int             # non-finite or (0, 0, 0) coordinates, or unusable
+                                      # probabilities
     valid: np.ndarray = field(repr=False, default=None)   # (N,) bool: neither of those
     n_bad_probabilities: int = 0      # unusable probabilities (part of n_invalid_points)
     quantized: bool = False           # some probability field was uint8
     shape: tuple = ()                 # (height, width) of the points cloud
     ring_issue: str | None = None     # why the cloud's ring field was not used (rows from
                                       # elevation), None when it was or there is none
+    n_padding: int = 0                # finite points at exactly (0, 0, 0): organized-cloud
+                                      # padding (part of n_invalid_points)
+    ring_field: str | None = None     # the ring field found in the cloud
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -229,35 +377,54 @@ def _xyz_intensity(arr: np.ndarray):
     return xyz, np.asarray(arr[inten_name], dtype=np.float32).reshape(-1)
 
 
-def _ring(arr: np.ndarray, xyz: np.ndarray, settings: LmsSettings
-          ) -> tuple[np.ndarray | None, str | None]:
-    """(image row of each point or None, why the ring field was not used or None): a ring
-    field that is not an integer beam index in ``[0, channels)`` (at the finite points)
-    leaves the frame to the elevation rows, with the reason."""
+def _ring(arr: np.ndarray, xyz: np.ndarray, valid: np.ndarray, settings: LmsSettings,
+          table: beams.BeamTable | None) -> tuple[np.ndarray | None, str | None, str | None]:
+    """(image row of each point or None, why the ring field was not used or None, the ring
+    field's name or None). A ring field that is not an integer beam index in range (at the
+    valid points) leaves the frame to the elevation rows, with the reason. ``settings``
+    resolved (:meth:`LmsSettings.resolved`)."""
     fields = arr.dtype.fields or {}
-    name = settings.ring_field
-    if not settings.use_ring or name not in fields:
-        return None, None
+    name = beams.find_ring_field(fields, settings.ring_field) if settings.use_ring else None
+    if name is None:
+        return None, None, None
     dt = fields[name][0]
     fix = ("rows from elevation for this frame (set ring_field to the beam index field, "
            "channels to the beam count, or use_ring: false)")
     if dt.shape or dt.kind not in "iu":
         what = f"count {dt.shape[0]}" if dt.shape else str(dt.base)
-        return None, f"ring field {name!r} ({what}) is not one integer beam index per point: {fix}"
+        return None, (f"ring field {name!r} ({what}) is not one integer beam index per "
+                      f"point: {fix}"), name
     raw = np.asarray(arr[name]).reshape(-1)
+    by_elevation = settings.rows_by_elevation()
     C = settings.channels
-    if raw.size and (raw.min() < 0 or raw.max() >= C):
-        ok = np.isfinite(xyz[:, 0]) & np.isfinite(xyz[:, 1]) & np.isfinite(xyz[:, 2])
-        out = ok & ((raw < 0) | (raw >= C))
+    top, what = (MAX_CHANNELS, "beam indices") if by_elevation else (C, "channels")
+    if raw.size and (raw.min() < 0 or raw.max() >= top):
+        out = valid & ((raw < 0) | (raw >= top))
         n_out = int(np.count_nonzero(out))
         if n_out:  # a sentinel ring on NaN points (no return) is no problem
-            lo, hi = int(raw[ok].min()), int(raw[ok].max())
+            lo, hi = int(raw[valid].min()), int(raw[valid].max())
             return None, (f"ring field {name!r} holds {lo}..{hi} at finite points ({n_out} of "
-                          f"{int(np.count_nonzero(ok))} outside [0, channels={C})): {fix}")
-    ring = raw.astype(np.int32)
-    if not settings.ring_zero_top:
-        np.subtract(np.int32(C - 1), ring, out=ring)
-    return ring, None
+                          f"{int(np.count_nonzero(valid))} outside [0, {what}={top})): "
+                          f"{fix}"), name
+    if not by_elevation:
+        ring = raw.astype(np.int32)
+        if not settings.ring_zero_top:
+            np.subtract(np.int32(C - 1), ring, out=ring)
+        return ring, None, name
+    el = beams.elevation_deg(xyz)
+    el[~valid] = np.nan
+    beam = np.where(valid, raw, 0).astype(np.int64)
+    table = beams.BeamTable(MAX_CHANNELS) if table is None else table
+    table.update(beam, el)
+    cfg = settings.range_config() if settings.has_table() else None
+    row = table.rows(cfg, C)[beam]
+    if cfg is not None:
+        # a beam not estimated yet (too few points so far): the point's own elevation bin
+        late = valid & (row < 0)
+        if late.any():
+            row[late] = beams.elevation_rows(el[late], cfg)
+    row[~valid] = -1
+    return row, None, name
 
 
 def _probabilities(arr: np.ndarray, names, source: str) -> tuple[np.ndarray, bool]:
@@ -301,13 +468,18 @@ def _gather(flat: np.ndarray, names, out: np.ndarray, block: int = 4096) -> None
                 np.divide(col[b0:b1], scale[c], out=out[c, b0:b1])
 
 
-def decode(points_msg, settings: LmsSettings, probabilities_msg=None) -> LmsInput:
+def decode(points_msg, settings: LmsSettings, probabilities_msg=None,
+           beam_table: beams.BeamTable | None = None) -> LmsInput:
     """Points and checked probabilities of one frame (see the module doc); raises
-    :class:`CloudFormatError` for an unusable input."""
+    :class:`CloudFormatError` for an unusable input. ``beam_table``: the per-beam
+    elevations kept across frames (``beam_rows: elevation``; None: this frame's only)."""
+    settings = settings.resolved()
     arr = cloud_to_structured(points_msg)
     xyz, intensity = _xyz_intensity(arr)
-    ring, ring_issue = _ring(arr, xyz, settings)
     N = len(xyz)
+    points_ok = valid_points(xyz)
+    n_padding = int(np.count_nonzero(finite_mask(xyz) & ~points_ok))
+    ring, ring_issue, ring_name = _ring(arr, xyz, points_ok, settings, beam_table)
     if probabilities_msg is None:
         probs_cm, quantized = _probabilities(arr, settings.field_names(), "input/points")
     else:
@@ -336,9 +508,7 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None) -> LmsInpu
         if n_bad:
             probs_cm[:, bad] = 0.0
         valid = usable
-        valid &= np.isfinite(xyz[:, 0])
-        valid &= np.isfinite(xyz[:, 1])
-        valid &= np.isfinite(xyz[:, 2])
+        valid &= points_ok
     else:
         n_renorm = n_bad = 0
         valid = np.zeros(0, bool)
@@ -346,14 +516,14 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None) -> LmsInpu
     return LmsInput(xyz=xyz, intensity=intensity, ring=ring, probs=probs_cm.T,
                     n_renormalized=n_renorm, n_invalid_points=int(N - np.count_nonzero(valid)),
                     valid=valid, n_bad_probabilities=n_bad, quantized=quantized, shape=shape,
-                    ring_issue=ring_issue)
+                    ring_issue=ring_issue, n_padding=n_padding, ring_field=ring_name)
 
 
 def frame_metrics(inp: LmsInput, settings: LmsSettings) -> SegmentResult:
     """:func:`compute_segments` of a decoded frame with the settings' image; points with
     unusable probabilities are left out of the image like non-finite ones."""
     xyz = inp.xyz
-    if inp.n_bad_probabilities:
+    if inp.n_invalid_points:
         xyz = xyz.copy()
         xyz[~inp.valid] = np.nan
     return compute_segments(xyz, inp.probs, settings.range_config(), ring=inp.ring,
@@ -388,7 +558,7 @@ def load_models(params: LmsParameters, warn=None) -> MetaModels:
     """The meta models of ``params`` (the shipped pair unless paths are set), checked
     against the metric schema and the recorded training settings; ``RuntimeError`` saying
     what and why otherwise."""
-    s = params.settings
+    s = params.settings.resolved()
     dc, dr = default_model_paths()
     names = s.metric_names()
     try:
@@ -400,6 +570,32 @@ def load_models(params: LmsParameters, warn=None) -> MetaModels:
         raise RuntimeError(
             f"cannot load the LMS meta models for {len(s.class_names)} classes "
             f"({len(names)} metrics): {exc}{hint}") from exc
+
+
+_GEOMETRY = ("channels", "width", "fov_up_deg", "fov_down_deg")
+
+
+def geometry_mismatch(models, settings: LmsSettings) -> str | None:
+    """How the image geometry the models were trained on (their manifests' recorded
+    settings) differs from ``settings`` (resolved), e.g. ``"trained 64 x 2048, fov 3 ..
+    -25 deg; running 16 x 1800, fov 16 .. -16 deg"``; None when it does not or the
+    manifests do not record it."""
+    rec = None
+    for m in (getattr(models, "classifier", None), getattr(models, "regressor", None)):
+        r = ((getattr(m, "manifest", None) or {}).get("training_data") or {}).get("settings")
+        if isinstance(r, dict) and all(k in r for k in _GEOMETRY):
+            rec = r
+            break
+    if rec is None:
+        return None
+    s = settings.resolved()
+    if all(math.isclose(float(rec[k]), float(getattr(s, k)), abs_tol=1e-6) for k in _GEOMETRY):
+        return None
+
+    def show(v):
+        return (f"{int(v['channels'])} x {int(v['width'])}, fov {float(v['fov_up_deg']):g} .. "
+                f"{float(v['fov_down_deg']):g} deg")
+    return f"trained {show(rec)}; running {show({k: getattr(s, k) for k in _GEOMETRY})}"
 
 
 # -- the node's frame work -----------------------------------------------------------------
@@ -428,6 +624,8 @@ class LmsOutputs:
     segments: object         # lidar_quality_msgs/SegmentQualityArray
     markers: object | None   # visualization_msgs/MarkerArray
     issues: dict             # key -> message of a throttled warning
+    errors: frozenset = frozenset()   # keys of ``issues`` at /diagnostics level ERROR
+    accounting: dict = field(default_factory=dict)   # point_accounting
 
     @property
     def messages(self) -> dict:
@@ -435,11 +633,44 @@ class LmsOutputs:
 
     @property
     def counts(self) -> dict:
-        res = self.result
-        return {"points.in": len(self.inp), "points.invalid": self.inp.n_invalid_points,
-                "points.out_of_view": int(res.projection.out_of_fov.sum()),
-                "points.renormalized": self.inp.n_renormalized, "segments": res.n_segments,
+        """Per-frame increments (summed into /diagnostics). Every point without a segment
+        (``points.no_segment``) is in exactly one of ``points.invalid`` (of which
+        ``points.padding``), ``points.unprojected`` and ``points.occluded``."""
+        res, inp = self.result, self.inp
+        a = self.accounting
+        return {"points.in": len(inp), "points.invalid": inp.n_invalid_points,
+                "points.padding": inp.n_padding,
+                "points.unprojected": a["unprojected"], "points.occluded": a["occluded"],
+                "points.no_segment": a["no_segment"],
+                "points.renormalized": inp.n_renormalized, "segments": res.n_segments,
                 "segments.scored": len(res.kept_ids)}
+
+    @property
+    def values(self) -> dict:
+        """Per-frame diagnostics values (set, not summed): the shares of the frame's valid
+        points without a pixel (``unprojected``: outside the image; ``occluded``: lost
+        their pixel to a nearer point and got no segment) and their sum."""
+        a = self.accounting
+        return {"points.unprojected_ratio": a["unprojected_ratio"],
+                "points.occluded_ratio": a["occluded_ratio"],
+                "points.no_pixel_ratio": a["no_pixel_ratio"]}
+
+
+def point_accounting(inp: LmsInput, res: SegmentResult) -> dict:
+    """Where a frame's points went: ``unprojected`` (valid points outside the image),
+    ``occluded`` (valid points that lost their pixel to a nearer point and got no
+    segment), ``no_segment`` (all points without a segment = invalid + unprojected +
+    occluded) and the shares of the valid points (0 for a frame without one)."""
+    pr = res.projection
+    valid = inp.valid
+    unproj = int(np.count_nonzero(valid & ~pr.valid))
+    no_seg = res.point_segment < 0
+    occl = int(np.count_nonzero(valid & pr.valid & no_seg))
+    nv = int(np.count_nonzero(valid))
+    d = max(nv, 1)
+    return {"unprojected": unproj, "occluded": occl, "no_segment": int(no_seg.sum()),
+            "valid": nv, "unprojected_ratio": unproj / d, "occluded_ratio": occl / d,
+            "no_pixel_ratio": (unproj + occl) / d}
 
 
 class LmsProcessor:
@@ -450,6 +681,7 @@ class LmsProcessor:
 
     def __init__(self, settings: LmsSettings, models):
         settings.validate()
+        settings = settings.resolved()
         if tuple(models.feature_names) != settings.metric_names():
             raise ValueError(
                 f"the models expect {len(models.feature_names)} features, the settings "
@@ -457,6 +689,8 @@ class LmsProcessor:
                 "models were trained for another class map")
         self.settings = settings
         self.models = models
+        #: per-beam elevations estimated from the clouds, kept for the node's lifetime
+        self.beam_table = beams.BeamTable(MAX_CHANNELS)
         from lidar_quality_msgs.msg import SegmentQuality, SegmentQualityArray
         self._Quality, self._QualityArray = SegmentQuality, SegmentQualityArray
 
@@ -465,7 +699,7 @@ class LmsProcessor:
         """One frame. Raises ``CloudFormatError`` for an unusable input (the frame is
         dropped); bad points never raise."""
         s = self.settings
-        inp = decode(points_msg, s, probabilities_msg)
+        inp = decode(points_msg, s, probabilities_msg, self.beam_table)
         res = frame_metrics(inp, s)
         conf_k, iou_k = self.models.predict(res.features)
         ns = res.n_segments
@@ -489,6 +723,19 @@ class LmsProcessor:
                 f"{NO_LABEL}, NaN confidence")
         if inp.ring_issue:
             issues["ring"] = inp.ring_issue
+        acc = point_accounting(inp, res)
+        errors = set()
+        ratio = acc["no_pixel_ratio"]
+        if acc["valid"] and ratio > s.no_pixel_warn_ratio:
+            issues["unprojected"] = (
+                f"{acc['unprojected'] + acc['occluded']} of {acc['valid']} valid points "
+                f"({100 * ratio:.1f} %) have no pixel: {acc['unprojected']} outside the "
+                f"{s.channels} x {s.width} image, {acc['occluded']} lost their pixel to a "
+                "nearer point (no segment, NaN confidence): the range image does not fit "
+                "the sensor (set sensor to its preset, or channels / width / "
+                "beam_elevations_deg / the field of view)")
+            if ratio > s.no_pixel_error_ratio:
+                errors.add("unprojected")
         if inp.intensity is None:
             issues["intensity"] = ("input/points has no intensity field (intensity, "
                                    "reflectance or i): the intensity metrics read 0")
@@ -496,7 +743,7 @@ class LmsProcessor:
                 probabilities_msg.header.frame_id != points_msg.header.frame_id):
             issues["frame_id"] = (f"input/points frame_id {points_msg.header.frame_id!r} != "
                                   f"input/probabilities {probabilities_msg.header.frame_id!r}")
-        return LmsOutputs(inp, res, conf, iou, cloud, segs, mk, issues)
+        return LmsOutputs(inp, res, conf, iou, cloud, segs, mk, issues, frozenset(errors), acc)
 
     @staticmethod
     def output_cloud(header, inp: LmsInput, res: SegmentResult, conf, iou):

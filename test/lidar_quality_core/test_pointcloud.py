@@ -760,3 +760,25 @@ def test_set_cloud_data_stores_the_buffer_without_a_copy():
     msg = PointCloud2()
     set_cloud_data(msg, buf)
     assert msg.data is buf
+
+
+def test_valid_points_excludes_non_finite_and_zero_padding():
+    xyz = np.array([[1, 2, 3], [0, 0, 0], [np.nan, 0, 0], [0, np.inf, 0], [0, 0, 1e-30],
+                    [-0.0, 0.0, -0.0], [0, 0, 5]], np.float32)
+    np.testing.assert_array_equal(pc.valid_points(xyz),
+                                  [True, False, False, False, True, False, True])
+    # padding = invalid but finite
+    assert int((finite_mask(xyz) & ~pc.valid_points(xyz)).sum()) == 2
+    assert pc.valid_points(np.zeros((0, 3))).shape == (0,)
+    with pytest.raises(ValueError, match=r"\(N, 3\)"):
+        pc.valid_points(np.zeros((4, 2)))
+
+
+def test_valid_points_of_an_organized_cloud():
+    # an Ouster-style organized cloud: no-return pixels are (0, 0, 0)
+    grid = np.zeros((4, 8), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
+    grid["x"][::2] = 5.0
+    msg = create_cloud(None, grid)
+    assert (msg.height, msg.width) == (4, 8)
+    xyz = np.stack([cloud_to_structured(msg)[k].reshape(-1) for k in "xyz"], 1)
+    assert pc.valid_points(xyz).sum() == 16

@@ -28,6 +28,8 @@ from visualization_msgs.msg import MarkerArray
 PARAMS = ("classifier_path", "regressor_path", "class_names", "channels", "fov_up_deg",
           "fov_down_deg", "width", "use_ring", "ring_zero_top", "ring_field",
           "min_segment_points", "sum_tolerance", "separate_probabilities", "publish_markers",
+          "sensor", "sensors_file", "beam_elevations_deg", "beam_rows", "no_pixel_warn_ratio",
+          "no_pixel_error_ratio",
           "sync_mode", "sync_slop", "sync_queue_size", "processing_queue_size",
           "diagnostics_period",
           "diagnostics_window", "drop_warn_fraction", "drop_error_fraction", "input_timeout",

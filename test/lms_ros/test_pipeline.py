@@ -425,3 +425,166 @@ def test_processor_empty_cloud(models):
         cloud(np.zeros((0, 3), np.float32), np.zeros((0, N_CLASSES), np.float32)))
     assert out.points.width == 0 and len(out.segments.segments) == 0
     assert set(out.issues) == {"intensity"}          # the cloud has no intensity field
+
+
+# -- sensors: ring field names, beam rows, presets, points without a pixel (issue 16) ----
+
+
+def _elevation(xyz):
+    xyz = np.asarray(xyz, np.float64)
+    return np.degrees(np.arcsin(xyz[:, 2] / np.linalg.norm(xyz, axis=1)))
+
+
+def test_ring_field_auto_finds_channel_and_lists_are_tried_in_order(frames):
+    f = frames[0]
+    p = noisy_probs(f, 8)
+    # nebula's layout: `channel`, 0 = lowest beam
+    msg = cloud(f.xyz, p, intensity=f.intensity, extra={"channel": (63 - f.ring).astype(np.uint16)})
+    inp = decode(msg, LmsSettings(width=COLS))                 # ring_field: auto
+    assert inp.ring_field == "channel"
+    np.testing.assert_array_equal(inp.ring, f.ring)
+    inp = decode(msg, LmsSettings(width=COLS, ring_field="laser_id, channel"))
+    assert inp.ring_field == "channel"
+    # `ring_field: ring` as before: the channel field is not read
+    inp = decode(msg, LmsSettings(width=COLS, ring_field="ring"))
+    assert inp.ring is None and inp.ring_field is None and inp.ring_issue is None
+
+
+def test_beam_rows_elevation_reads_any_beam_numbering(frames):
+    f = frames[0]
+    p = noisy_probs(f, 8)
+    perm = np.random.default_rng(0).permutation(64)      # laser ids in firing order
+    msg = cloud(f.xyz, p, intensity=f.intensity, extra={"laser_id": perm[f.ring].astype(np.uint16)})
+    s = LmsSettings(width=COLS, beam_rows="elevation")
+    inp = decode(msg, s)
+    assert inp.ring_field == "laser_id"
+    np.testing.assert_array_equal(inp.ring, f.ring)       # rows go down the beams again
+    ref = frame_metrics(decode(frame_cloud(f, p), _settings()), _settings())
+    np.testing.assert_array_equal(frame_metrics(inp, s).features, ref.features)
+    # index mode takes the ids as rows: scrambled
+    assert (decode(msg, LmsSettings(width=COLS, ring_zero_top=True)).ring != f.ring).mean() > 0.9
+
+
+def test_sensor_presets_resolve_the_geometry(tmp_path):
+    from lidar_quality_core.parameters import from_parameters
+
+    s = LmsSettings(sensor="VLP-16").resolved()
+    assert (s.channels, s.width) == (16, 1800)
+    assert s.beam_elevations_deg == tuple(float(v) for v in range(15, -16, -2))
+    assert (s.fov_up_deg, s.fov_down_deg) == (16.0, -16.0)
+    assert s.range_config().shape == (16, 1800) and s.rows_by_elevation()
+    assert LmsSettings().resolved() == LmsSettings()       # no preset: the parameters
+    assert not LmsSettings().rows_by_elevation()
+    with pytest.raises(ValueError, match=r"sensor 'VLP-17' is not a preset .*VLP-16"):
+        LmsSettings(sensor="VLP-17").validate()
+    # a table as a parameter (any order): one row per beam
+    t = from_parameters(LmsSettings, {"beam_elevations_deg": "1, -1, 3", "width": 900})
+    assert t.beam_elevations_deg == (1.0, -1.0, 3.0)
+    r = t.resolved()
+    assert (r.channels, r.width, r.fov_up_deg, r.fov_down_deg) == (3, 900, 4.0, -2.0)
+    with pytest.raises(ValueError, match="same elevation"):
+        LmsSettings(beam_elevations_deg=(1.0, 1.0)).validate()
+    # your own presets file
+    own = tmp_path / "mine.yaml"
+    own.write_text("Mine:\n  elevations_deg: [2, 0, -2, -4]\n  azimuth_resolution_deg: 0.4\n")
+    m = LmsSettings(sensor="Mine", sensors_file=str(own))
+    m.validate()
+    assert m.resolved().range_config().shape == (4, 900)
+
+
+def test_every_shipped_preset_is_a_valid_image():
+    from lms_ros.pipeline import sensor_presets
+
+    presets = sensor_presets()
+    for name in ("VLP-16", "VLP-32C", "HDL-32E", "HDL-64E", "VLS-128", "Pandar40P", "Pandar64",
+                 "PandarXT32", "PandarQT128", "OT128", "AT128", "OS1-64", "OS1-128", "OS2-64",
+                 "OS2-128"):
+        p = presets[name]
+        s = LmsSettings(sensor=name)
+        s.validate()
+        assert s.resolved().channels == p.channels and p.description
+    # published beam counts and widths at 10 Hz
+    assert {n: (presets[n].channels, presets[n].width) for n in
+            ("VLP-16", "HDL-64E", "VLS-128", "PandarXT32", "PandarQT128", "OS1-128")} == {
+        "VLP-16": (16, 1800), "HDL-64E": (64, 2048), "VLS-128": (128, 1800),
+        "PandarXT32": (32, 2000), "PandarQT128": (128, 900), "OS1-128": (128, 2048)}
+
+
+def test_padding_points_are_excluded_and_counted(frames, models):
+    f = frames[1]
+    s = _settings()
+    p = noisy_probs(f, 9)
+    xyz = f.xyz.astype(np.float32).copy()
+    pad = np.arange(0, len(xyz), 50)
+    xyz[pad] = 0.0
+    xyz[7] = np.nan
+    out = LmsProcessor(s, models).process(cloud(xyz, p, intensity=f.intensity, ring=f.ring))
+    c = out.counts
+    assert c["points.padding"] == len(pad) and c["points.invalid"] == len(pad) + 1
+    seg = read_fields(out.points, ["segment"], dtype=np.int64)[:, 0]
+    assert (seg[pad] == -1).all() and seg[7] == -1
+    # padding takes no pixel: the image equals that of the cloud without those points
+    keep = np.setdiff1d(np.arange(len(xyz)), np.r_[pad, 7])
+    ref = frame_metrics(decode(cloud(xyz[keep], p[keep], intensity=f.intensity[keep],
+                                     ring=f.ring[keep]), s), s)
+    np.testing.assert_array_equal(out.result.features, ref.features)
+    # a defined label: the point's own predicted class (its probabilities are usable)
+    lab = read_fields(out.points, ["label"], dtype=np.int64)[:, 0]
+    np.testing.assert_array_equal(lab[pad], p[pad].argmax(axis=1))
+    assert c["points.no_segment"] == c["points.invalid"] + c["points.unprojected"] + \
+        c["points.occluded"] == int((seg < 0).sum())
+    assert "unprojected" not in out.issues
+
+
+@pytest.mark.parametrize("share, level", [(0.10, "warn"), (0.40, "error")])
+def test_points_without_a_pixel_are_counted_and_warned(frames, models, share, level):
+    f = frames[1]
+    p = noisy_probs(f, 9)
+    el = _elevation(f.xyz)
+    down = float(np.quantile(el, share))
+    s = _settings(use_ring=False, fov_up_deg=3.0, fov_down_deg=down)
+    out = LmsProcessor(s, models).process(frame_cloud(f, p))
+    a = out.accounting
+    assert abs(a["unprojected"] - int((el <= down).sum())) <= 2
+    assert out.values["points.unprojected_ratio"] == pytest.approx(share, abs=0.01)
+    assert out.values["points.no_pixel_ratio"] == pytest.approx(
+        a["unprojected_ratio"] + a["occluded_ratio"])
+    assert out.counts["points.unprojected"] == a["unprojected"]
+    assert "unprojected" in out.issues and f"{a['unprojected']} outside" in out.issues["unprojected"]
+    assert ("unprojected" in out.errors) == (level == "error")
+    # the frame goes out whole; points without a pixel: segment -1, own class, NaN confidence
+    assert out.points.width == len(f.xyz)
+    below = el < down - 1e-6
+    seg = read_fields(out.points, ["segment"], dtype=np.int64)[:, 0]
+    lab = read_fields(out.points, ["label"], dtype=np.int64)[:, 0]
+    conf = read_fields(out.points, ["confidence"])[:, 0]
+    assert (seg[below] == -1).all() and np.isnan(conf[below]).all()
+    np.testing.assert_array_equal(lab[below], p[below].argmax(axis=1))
+
+
+@pytest.fixture(scope="module")
+def recorded_models(frames, tmp_path_factory):
+    """Models whose manifests record their training settings (as lms-train writes them)."""
+    from lms_data import train_node_models
+
+    c, r = train_node_models(tmp_path_factory.mktemp("lms_recorded"), frames, _settings())
+    return meta_model.MetaModels(c, r, _settings().metric_names())
+
+
+def test_model_geometry_mismatch_warns(models, recorded_models):
+    from lms_ros.pipeline import geometry_mismatch
+
+    s = _settings(sensor="VLP-16")
+    assert geometry_mismatch(models, s) is None          # nothing recorded: nothing to say
+    assert geometry_mismatch(recorded_models, _settings()) is None
+    assert geometry_mismatch(recorded_models, s) == (
+        "trained 64 x 256, fov 3 .. -25 deg; running 16 x 1800, fov 16 .. -16 deg")
+    warnings = []
+    m = meta_model.MetaModels(recorded_models.classifier.path, recorded_models.regressor.path,
+                              s.metric_names(), settings=s.resolved(), method="lms",
+                              warn=warnings.append)
+    assert m.confidence_model_id == recorded_models.confidence_model_id
+    assert any("channels: model trained with 64, node set to 16" in w for w in warnings), warnings
+    out = LmsProcessor(s, m).process(cloud(np.array([[5, 0, 0]] * 20, np.float32),
+                                           np.full((20, N_CLASSES), 1 / N_CLASSES)))
+    assert out.points.width == 20
