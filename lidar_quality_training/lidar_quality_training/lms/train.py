@@ -224,8 +224,8 @@ def _model_card(path: Path, data: dict, cv: dict | None, kind: str, command: str
         f"Trained on {trained_on}: the metrics depend on that segmenter's probability "
         "calibration and on the sensor layout (image size, rows from rings). Retrain for "
         "another segmentation network or sensor; the node refuses a model trained for "
-        "another class list, image geometry or min_segment_points (manifest "
-        "`training_data.settings`).")
+        "another class list or min_segment_points and warns for another image geometry "
+        "(manifest `training_data.settings`).")
     card.write(path)
 
 
