@@ -19,6 +19,7 @@ accepted and ignored.
 """
 from __future__ import annotations
 
+import functools
 import threading
 import time
 from collections import Counter
@@ -96,6 +97,30 @@ class QualityNode(Node):
 
     #: seconds between two log lines of the same warning cause
     warn_period_s = 5.0
+
+    def __init_subclass__(cls, **kwargs):
+        # A node whose start fails (bad parameter, missing models) must not stay in the ROS
+        # graph: the exception's traceback keeps it alive, and a later node of the same name
+        # saw "2 nodes are named ..." (clean-clone CI). The outermost __init__ destroys it.
+        super().__init_subclass__(**kwargs)
+        init = cls.__init__
+
+        @functools.wraps(init)
+        def __init__(self, *args, **kw):
+            try:
+                init(self, *args, **kw)
+            except BaseException:
+                if type(self) is cls:
+                    self._destroy_after_failed_start()
+                raise
+
+        cls.__init__ = __init__
+
+    def _destroy_after_failed_start(self) -> None:
+        try:
+            self.destroy_node()
+        except Exception:  # noqa: BLE001 - Node.__init__ itself failed: nothing to destroy
+            pass
 
     def __init__(self, name: str, **kwargs):
         super().__init__(name, **kwargs)

@@ -165,6 +165,19 @@ def test_non_finite_parameters_are_refused_by_name(ros, kind, name):
         ros.start(NODES[kind], parameters={name: math.inf})
 
 
+@pytest.mark.parametrize("kind,params", [
+    ("mimo", {"classifier_path": "/nonexistent/c.joblib"}),   # fails in the subclass
+    ("lmd", {"drop_warn_fraction": 0.5, "drop_error_fraction": 0.1})])  # in QualityNode
+def test_a_node_that_fails_to_start_leaves_the_graph(ros, kind, params):
+    """The traceback kept a failed node alive and in the ROS graph: a later node of the
+    same name was reported as a duplicate (flaky in a clean-clone CI run)."""
+    with pytest.raises((RuntimeError, ValueError)) as e:
+        ros.start(NODES[kind], parameters=params)
+    assert e.value is not None                          # the traceback is still held here
+    names = [n for n, _ in ros.node.get_node_names_and_namespaces()]
+    assert f"{kind}_node" not in names, names
+
+
 def test_two_nodes_of_the_same_name_are_reported(ros):
     log = ros.collector(Log, "/rosout")
     a = ros.start(LmdNode, parameters={"proposal_mode": "none"})
