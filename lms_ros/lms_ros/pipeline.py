@@ -310,21 +310,22 @@ class LmsSettings:
             beams.parse_degrees(table)
             if len(set(table)) != len(table):
                 raise ValueError("two beams at the same elevation")
-            self = self.resolved()      # an unknown sensor / unreadable presets file raise
+            geo = self.resolved()       # an unknown sensor / unreadable presets file raise
         except (ValueError, OSError) as exc:
             raise ValueError(f"sensor / beam_elevations_deg: {exc}") from None
         for name, top in (("channels", MAX_CHANNELS), ("width", MAX_WIDTH)):
-            v = getattr(self, name)
+            # the width as given unless a preset sets it (resolving casts it to int)
+            v = getattr(self if name == "width" and not self.sensor else geo, name)
             if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {v!r}")
             if v > top:
                 raise ValueError(f"{name} must be <= {top}, got {v}: {_LIMIT_WHY[name]}")
-        if self.channels * self.width > MAX_PIXELS:
+        if geo.channels * geo.width > MAX_PIXELS:
             raise ValueError(
-                f"channels x width = {self.channels} x {self.width} = "
-                f"{self.channels * self.width} pixels exceeds {MAX_PIXELS}: "
+                f"channels x width = {geo.channels} x {geo.width} = "
+                f"{geo.channels * geo.width} pixels exceeds {MAX_PIXELS}: "
                 f"{_LIMIT_WHY['pixels']}")
-        up, down = self.fov_up_deg, self.fov_down_deg
+        up, down = geo.fov_up_deg, geo.fov_down_deg
         if not (math.isfinite(up) and math.isfinite(down) and -90 <= down < up <= 90):
             raise ValueError(f"need -90 <= fov_down_deg < fov_up_deg <= 90, got "
                              f"fov_up_deg={up}, fov_down_deg={down}")

@@ -588,3 +588,38 @@ def test_model_geometry_mismatch_warns(models, recorded_models):
     out = LmsProcessor(s, m).process(cloud(np.array([[5, 0, 0]] * 20, np.float32),
                                            np.full((20, N_CLASSES), 1 / N_CLASSES)))
     assert out.points.width == 20
+
+
+def test_organized_ouster_cloud_with_padding(models):
+    """An OS1-64-style organized cloud (64 x 256, ring 0 = top, no-return pixels written
+    as (0, 0, 0)) with the OS1-64 preset: layout kept, the padding counted and without a
+    segment, every other point in the image."""
+    rng = np.random.default_rng(4)
+    H, W = 64, 256
+    el = np.radians(np.linspace(22.5, -22.5, H))[:, None]
+    az = np.radians(np.linspace(180, -180, W, endpoint=False))[None, :]
+    r = rng.uniform(3, 30, (H, W))
+    grid = np.zeros((H, W), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4"), ("intensity", "f4"),
+                                   ("ring", "u2")] + [(nm.replace("-", "_"), "f4")
+                                                      for nm in CLASS_NAMES])
+    grid["x"], grid["y"] = r * np.cos(el) * np.cos(az), r * np.cos(el) * np.sin(az)
+    grid["z"] = np.broadcast_to(r * np.sin(el), (H, W))
+    grid["ring"] = np.arange(H)[:, None]
+    p = rng.dirichlet(np.ones(N_CLASSES) * 0.3, H * W).astype(np.float32).reshape(H, W, -1)
+    for k, nm in enumerate(CLASS_NAMES):
+        grid[nm.replace("-", "_")] = p[..., k]
+    pad = rng.random((H, W)) < 0.3
+    for k in ("x", "y", "z"):
+        grid[k][pad] = 0.0
+    msg = create_cloud(Header(frame_id="os_sensor"), grid)
+    out = LmsProcessor(LmsSettings(class_names=CLASS_NAMES, sensor="OS1-64", width=COLS),
+                       models).process(msg)
+    assert (out.points.height, out.points.width) == (H, W)
+    c = out.counts
+    assert c["points.padding"] == c["points.invalid"] == int(pad.sum())
+    assert c["points.unprojected"] == 0 and out.values["points.no_pixel_ratio"] < 0.05
+    seg = read_fields(out.points, ["segment"], dtype=np.int64)[:, 0].reshape(H, W)
+    assert (seg[pad] == -1).all() and (seg[~pad] >= 0).mean() > 0.95
+    # rows from the beams' elevations: ring r is row r
+    np.testing.assert_array_equal(out.result.projection.row.reshape(H, W)[~pad],
+                                  np.broadcast_to(np.arange(H)[:, None], (H, W))[~pad])

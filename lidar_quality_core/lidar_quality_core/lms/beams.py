@@ -153,7 +153,8 @@ def parse_degrees(text) -> tuple[float, ...]:
     """A comma / space separated list of degrees (or a sequence of numbers) as a tuple;
     ``ValueError`` naming the bad entry."""
     if isinstance(text, str):
-        parts = [p for p in text.replace(",", " ").split() if p]
+        # "[15, 13]" too: a YAML list given where the parameter is a string
+        parts = [p for p in text.strip().strip("[]").replace(",", " ").split() if p]
     else:
         parts = list(text or ())
     out = []

@@ -99,7 +99,7 @@ def test_rows_of_beams_outside_the_table_and_elevation_rows():
 
 def test_parse_degrees():
     assert parse_degrees("15, 13 ,-1.5") == (15.0, 13.0, -1.5)
-    assert parse_degrees("") == ()
+    assert parse_degrees("") == () and parse_degrees("[2, -2]") == (2.0, -2.0)
     assert parse_degrees([1, 2.5]) == (1.0, 2.5)
     with pytest.raises(ValueError, match="'abc'"):
         parse_degrees("1, abc")
