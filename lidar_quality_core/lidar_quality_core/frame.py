@@ -3,7 +3,9 @@
 ``process(inputs) -> outputs`` where outputs have ``messages`` (output name -> message, in
 publication order), ``markers`` (or None), ``issues`` (warning cause -> text: input
 problems of this frame, the frame still goes out) and ``counts`` (name -> increment, summed
-into diagnostics and process_bag's summary). A frame that cannot be processed raises
+into diagnostics and process_bag's summary), and optionally ``notes`` (decisions to log
+once at info level, e.g. an ``intensity_scale: auto`` decision) and ``values`` (diagnostics
+values of the latest frame). A frame that cannot be processed raises
 :class:`FrameRejected`: it is dropped and counted under its ``reason``. The node base class
 (``lidar_quality_ros.node_base.QualityNode``) and ``process_bag`` run processors this way.
 """
@@ -30,3 +32,5 @@ class FrameOutputs:
     markers: object = None
     issues: dict = field(default_factory=dict)
     counts: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)
+    values: dict = field(default_factory=dict)

@@ -263,6 +263,10 @@ class QualityNode(Node):
         for key, n in out.counts.items():
             self._counts[key] += n
             self.diag.set_value(key, self._counts[key])
+        for text in getattr(out, "notes", ()):
+            self.get_logger().info(text)
+        for key, value in getattr(out, "values", {}).items():
+            self.diag.set_value(key, value)
         self.diag.frame_processed((time.perf_counter() - t0) * 1e3)
 
     # ------------------------------------------------------------------ watchdog

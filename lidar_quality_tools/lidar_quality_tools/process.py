@@ -303,12 +303,14 @@ class NodeStats:
     issues: Counter = field(default_factory=Counter)   # frames with an input problem, by key
     wall_s: float = 0.0
     absent_topics: list = field(default_factory=list)  # input topics not in the bag
+    values: dict = field(default_factory=dict)          # the last frame's values
 
     def summary(self) -> dict:
         return {"frames_in": self.frames_in, "frames_out": self.frames_out,
                 "absent_topics": list(self.absent_topics),
                 "frames_dropped": sum(self.dropped.values()), "dropped": dict(self.dropped),
                 "counts": dict(self.counts), "issues": dict(self.issues),
+                "values": dict(self.values),
                 "wall_s": round(self.wall_s, 3),
                 "frames_per_s": round(self.frames_in / self.wall_s, 2) if self.wall_s else None}
 
@@ -358,6 +360,9 @@ def _process_frame(frame: _Frame, runners, stats, warn, write) -> None:
         for key, text in out.issues.items():
             st.issues[key] += 1
             warn(r.name, key, f"stamp {frame.stamp_ns}: {text}")
+        for text in getattr(out, "notes", ()):   # decisions (e.g. intensity_scale: auto)
+            warn(r.name, "note", text)
+        st.values.update(getattr(out, "values", {}))
         for (topic, msgtype), msg in zip(OUTPUTS[r.name], out.messages.values()):
             write(topic, msgtype, log_ns, msg)
 

@@ -61,6 +61,7 @@ import numpy as np
 from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt_issue
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
                                               rescaled_scores)
+from lidar_quality_core.intensity import INTENSITY_SCALES, IntensityScale
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import check_fields, group, param
@@ -102,6 +103,11 @@ class LmdSettings:
         ["car", "truck", "pedestrian", "cyclist"],
         "Class names in the order of the models' class feature (class id = position); a "
         "detection of another class gets NaN confidence.")
+    intensity_scale: str = param(
+        "auto", "Scale of input/points' intensity, brought to [0, 1] for the reflectance "
+        "features: 'unit' (already [0, 1], as our simulator and KITTI), 'byte' (0..255, most "
+        "drivers) or 'auto' (decided from the first frames and logged).",
+        choices=INTENSITY_SCALES)
     #: Append the detector's per-class scores (``class_score_<name>``, in ``class_names``
     #: order) to the paper's features (features module: optional extras).
     class_score_features: bool = False
@@ -277,12 +283,16 @@ def _moved(arr: DetectionArrays, t: Transform | None, name: str, notes: list) ->
 
 
 def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettings, *,
-                   transforms: dict | None = None) -> LmdFrame:
+                   transforms: dict | None = None,
+                   intensity: IntensityScale | None = None) -> LmdFrame:
     """Features of one frame from its messages (PointCloud2, Detection3DArray,
     Detection3DArray; the two arrays may also come as ``detection_cdr.DecodedDetections``).
     ``detections_msg`` is unused (may be None) in exact mode, ``proposals_msg`` is None in
     none mode. ``transforms``: ``{"input/detections" | "input/proposals": Transform}`` into
     the cloud's frame, for inputs in another frame (``transforms.input_transforms``).
+    ``intensity``: the stream's ``IntensityScale`` (its ``auto`` decision spans frames; None:
+    a new one of ``settings.intensity_scale``, deciding on this frame alone); its decision
+    note, when made, is in the frame's ``notes`` (logged once, not a warning).
 
     Raises ``CloudFormatError`` for a malformed cloud or one without intensity,
     ``ValueError`` for a missing input of the mode.
@@ -297,6 +307,8 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
     if inten is None:
         raise CloudFormatError("input/points has no intensity field (intensity / reflectance / "
                                "i): the reflectance features need it")
+    scale = intensity if intensity is not None else IntensityScale(settings.intensity_scale)
+    inten = scale.scale(inten)
     if mode != "none" and proposals_msg is None:
         raise ValueError(f'proposal mode "{mode}" needs the proposals')
     transforms = transforms or {}
@@ -377,6 +389,8 @@ class LmdOutputs:
     #: input problems by key (``"detections"``, ``"frame_id"``, ``"scores"``,
     #: ``"roll_pitch"``, ``"transform"``); absent key = no problem
     issues: dict = field(default_factory=dict)
+    notes: list = field(default_factory=list)     # decisions to log once (info)
+    values: dict = field(default_factory=dict)    # diagnostics values of this frame
 
     @property
     def messages(self) -> dict:
@@ -411,6 +425,7 @@ class LmdProcessor:
         self.settings = settings
         self.models = models
         self.min_confidence = float(min_confidence)
+        self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
         self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
         #: for whoever builds the buffer (process_bag: one per bag)
         self.transform_tolerance = float(transform_tolerance)
@@ -439,7 +454,8 @@ class LmdProcessor:
                 None if t is None else getattr(t, "lookup", t),
                 fix=" (publish it on /tf_static or /tf, or set transform_inputs: false to "
                     "compute as if the frames were equal)")
-        frame = frame_features(cloud, detections, proposals, self.settings, transforms=moved)
+        frame = frame_features(cloud, detections, proposals, self.settings, transforms=moved,
+                               intensity=self.intensity)
         conf, iou = self.models.predict(frame.features)
         n = len(frame.detections)
         kept = (conf >= self.min_confidence) if self.min_confidence > 0 else np.ones(n, bool)
@@ -478,7 +494,9 @@ class LmdProcessor:
                     else "; ".join(frame_notes))
         if mismatch:
             issues["frame_id"] = mismatch
-        return LmdOutputs(frame, conf, iou, kept, det_msg, quality, mk, issues)
+        return LmdOutputs(frame, conf, iou, kept, det_msg, quality, mk, issues,
+                          [self.intensity.note] if self.intensity.note else [],
+                          {"intensity_scale": self.intensity.decided})
 
     def markers(self, frame: LmdFrame, conf, iou, kept):
         """Boxes of the published detections coloured by confidence, labelled

@@ -56,6 +56,7 @@ from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
                                       detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
 from lidar_quality_core.frame import FrameRejected
+from lidar_quality_core.intensity import INTENSITY_SCALES, IntensityScale
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
@@ -106,6 +107,10 @@ class MimoSettings:
     class_names: tuple = param(
         list(DEFAULT_CLASS_NAMES), "Foreground class names of the heads' hypotheses, in the "
         "order of the meta models' class feature.")
+    intensity_scale: str = param(
+        "auto", "use_points: scale of input/points' intensity, brought to [0, 1] for the "
+        "reflectance features: 'unit' (already [0, 1]), 'byte' (0..255, most drivers) or "
+        "'auto' (decided from the first frames and logged).", choices=INTENSITY_SCALES)
 
     def feature_names(self) -> tuple[str, ...]:
         return STAT_FEATURES + (POINT_FEATURES if self.use_points else ())
@@ -409,14 +414,17 @@ def _frame_id_mismatches(named) -> list[str]:
 
 def frame_features(head_msgs: Sequence, variance_msgs: Sequence | None = None,
                    settings: MimoSettings = MimoSettings(), cloud_msg=None, *,
-                   transforms: dict | None = None) -> MimoFrame:
+                   transforms: dict | None = None,
+                   intensity: IntensityScale | None = None) -> MimoFrame:
     """Decode the heads of one frame (``None``: head missing), merge them and compute the
     features. ``variance_msgs``: one ``BoxVarianceArray`` or ``None`` per head (or None).
     ``cloud_msg``: a PointCloud2 or ``(xyz, intensity)``, used when ``settings.use_points``
     (None there: the point features are NaN). ``transforms``: ``{"head k" | "input/points":
     Transform}`` into the first present head's frame (``transforms.input_transforms``);
     given (even empty), frame_id differences are the caller's business; None: they are
-    reported and merged as if equal. Raises ``ValueError`` without any head."""
+    reported and merged as if equal. ``intensity``: the stream's ``IntensityScale`` (None:
+    a new one of ``settings.intensity_scale``, deciding on this frame alone). Raises
+    ``ValueError`` without any head."""
     if len(head_msgs) != settings.num_heads:
         raise ValueError(f"{len(head_msgs)} head messages for num_heads={settings.num_heads}")
     if variance_msgs is None:
@@ -431,9 +439,14 @@ def frame_features(head_msgs: Sequence, variance_msgs: Sequence | None = None,
         issues += _frame_id_mismatches([(f"head {k}", head_msgs[k]) for k in used]
                                        + [("input/points", cloud_msg)])
         transforms = {}
-    if "input/points" in transforms and cloud_msg is not None and settings.use_points:
+    if cloud_msg is not None and settings.use_points:
         xyz, inten = _decode_cloud(cloud_msg)
-        cloud_msg = (transforms["input/points"].apply_points(xyz), inten)
+        if inten is not None:
+            scale = intensity if intensity is not None else IntensityScale(settings.intensity_scale)
+            inten = scale.scale(inten)
+        if "input/points" in transforms:
+            xyz = transforms["input/points"].apply_points(xyz)
+        cloud_msg = (xyz, inten)
     heads, arrays = [], []
     for k in used:
         mine: list[str] = []
@@ -525,12 +538,13 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
 
 def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, models, *,
                   cloud_msg=None, scores: str = "confidence",
-                  serialized: bool = False, transforms: dict | None = None) -> MimoOutput:
+                  serialized: bool = False, transforms: dict | None = None,
+                  intensity: IntensityScale | None = None) -> MimoOutput:
     """The node's work for one frame, decode to output messages: ``frame_features``,
     ``models.predict`` (a ``MetaModels``), ``output_messages`` (``serialized``: the
     detections as bytes)."""
     frame = frame_features(head_msgs, variance_msgs, settings, cloud_msg,
-                           transforms=transforms)
+                           transforms=transforms, intensity=intensity)
     conf, iou = models.predict(frame.features)
     dets, unc = output_messages(header, frame, conf, iou, scores=scores,
                                 confidence_model_id=models.confidence_model_id,
@@ -553,6 +567,8 @@ class MimoFrameOutputs:
     issues: dict
     counts: dict
     markers: object = None       # MarkerArray, or None when not asked for
+    notes: list = field(default_factory=list)     # decisions to log once (info)
+    values: dict = field(default_factory=dict)    # diagnostics values of this frame
 
     @property
     def messages(self) -> dict:
@@ -585,6 +601,7 @@ class MimoProcessor:
             raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
         self.settings, self.models, self.scores = settings, models, scores
         self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
+        self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
         #: for whoever builds the buffer (process_bag: one per bag)
         self.transform_tolerance = float(transform_tolerance)
 
@@ -623,8 +640,10 @@ class MimoProcessor:
                     "merge as if the frames were equal)")
             if notes:
                 issues["frame_id"] = "; ".join(notes)
+        self.intensity.note = None
         out = process_frame(header, list(heads), variances, s, self.models, cloud_msg=xyz,
-                            scores=self.scores, serialized=True, transforms=moved)
+                            scores=self.scores, serialized=True, transforms=moved,
+                            intensity=self.intensity)
         if out.frame.issues:
             issues["heads"] = "; ".join(out.frame.issues)
         mk = None
@@ -637,7 +656,9 @@ class MimoProcessor:
         counts = {"boxes.in": sum(len(a) for a in out.frame.arrays),
                   "detections.out": len(out.frame),
                   "frames_partial": int(len(present) < len(heads))}
-        return MimoFrameOutputs(out, issues, counts, mk)
+        values = {"intensity_scale": self.intensity.decided} if s.use_points else {}
+        return MimoFrameOutputs(out, issues, counts, mk,
+                                [self.intensity.note] if self.intensity.note else [], values)
 
 
 # ------------------------------------------------------------------ head fallback

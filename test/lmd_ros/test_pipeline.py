@@ -1,6 +1,7 @@
 """lmd_ros.pipeline: messages -> features (same as compute_features on the same arrays),
 exact-mode NMS, invalid boxes, malformed clouds, and the node's frame processor."""
 import copy
+from dataclasses import replace
 import math
 
 import numpy as np
@@ -548,3 +549,30 @@ def test_processor_tilting_transform_is_reported(threshold_models):
     dets.header = header(3, "")
     out = LmdProcessor(s, models, transforms=buf).process(cloud, dets, props)
     assert "empty frame_id" in out.issues["frame_id"]
+
+
+def test_intensity_scale_auto_gives_the_same_outputs_in_both_scales(threshold_models):
+    """A driver's 0..255 intensity: before, the same scan scaled by 255 moved confidences
+    (up to 0.40 on real scans) and nothing said so; auto reads both as [0, 1]."""
+    s, models = threshold_models
+    f = synthetic.synthetic_frame(n_points=20_000, n_objects=12, n_proposals=120, seed=9)
+    assert 0.0 <= f.intensity.min() and f.intensity.max() <= 1.0
+    cloud, dets, props = frame_messages(f, 3)
+    cloud255 = frame_messages(replace(f, intensity=(f.intensity * 255).astype(np.float32)), 3)[0]
+    ref_proc = LmdProcessor(s, models)
+    ref = ref_proc.process(cloud, copy.deepcopy(dets), copy.deepcopy(props))
+    proc = LmdProcessor(s, models)
+    out = proc.process(cloud255, copy.deepcopy(dets), copy.deepcopy(props))
+    np.testing.assert_allclose(out.confidence, ref.confidence, atol=1e-5)
+    np.testing.assert_allclose(out.predicted_iou, ref.predicted_iou, atol=1e-5)
+    assert out.values == {"intensity_scale": "byte"} and "0..255" in out.notes[0]
+    assert ref.values == {"intensity_scale": "unit"} and "[0, 1]" in ref.notes[0]
+    assert proc.process(cloud255, copy.deepcopy(dets), copy.deepcopy(props)).notes == []
+    # the same scan read as given ('unit'): the reflectance features are 255x off
+    raw = LmdProcessor(replace(s, intensity_scale="unit"), models).process(
+        cloud255, copy.deepcopy(dets), copy.deepcopy(props))
+    assert np.nanmax(np.abs(raw.confidence - ref.confidence)) > 1e-3
+    rounded = replace(f, intensity=np.round(f.intensity * 255).astype(np.float32))  # drivers
+    r = LmdProcessor(s, models).process(frame_messages(rounded, 3)[0], copy.deepcopy(dets),
+                                        copy.deepcopy(props))
+    assert np.nanmax(np.abs(r.confidence - ref.confidence)) < 0.05
