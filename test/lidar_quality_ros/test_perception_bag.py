@@ -3,8 +3,9 @@ import numpy as np
 import pytest
 from lidar_quality_core.boxes import arrays_to_detections
 from lidar_quality_core.pointcloud import create_xyz_cloud
-from lidar_quality_ros.bag_io import BagWriter
-from lidar_quality_ros.perception_bag import bag_group, head_count, perception_frames, resolve_bags
+from lidar_quality_ros.bag_io import BagWriter, read_bag
+from lidar_quality_ros.perception_bag import (bag_group, head_count, parse_topic_options,
+                                              perception_frames, resolve_bags, topic_of)
 from std_msgs.msg import Header
 
 DET = "vision_msgs/msg/Detection3DArray"
@@ -60,3 +61,49 @@ def test_resolve_bags_and_groups(tmp_path):
     assert bag_group(bags[1]) == "split/seq_01"
     with pytest.raises(FileNotFoundError, match="not a rosbag2"):
         resolve_bags([tmp_path / "split" / "notes"])
+
+
+def test_topic_keys_and_options():
+    assert topic_of("points") == "/lidar/points"
+    assert topic_of("head_3/variance") == "/perception/head_3/variance"
+    assert topic_of("head_12") == "/perception/head_12"
+    assert topic_of("points", {"points": "/a"}) == "/a"
+    assert parse_topic_options(["points=/sensing/lidar/top/pointcloud", "head_0/variance=/v"]) \
+        == {"points": "/sensing/lidar/top/pointcloud", "head_0/variance": "/v"}
+    for bad, why in (("cloud=/a", "unknown topic key 'cloud' (known: points, points_gt, "
+                                  "gt_objects, detections, proposals, segmentation, head_<k>, "
+                                  "head_<k>/variance)"),
+                     ("head_x=/a", "unknown topic key 'head_x'"),
+                     ("points", "expected KEY=/topic/name"),
+                     ("points=lidar", "expected KEY=/topic/name")):
+        with pytest.raises(ValueError) as e:
+            parse_topic_options([bad])
+        assert why in str(e.value)
+    with pytest.raises(ValueError, match="given twice"):
+        parse_topic_options(["points=/a", "points=/b"])
+
+
+def test_frames_under_other_names_and_unknown_types(tmp_path, capsys):
+    """``topics`` names every topic (heads too); a topic of a type unknown here is left
+    out with one warning per type."""
+    _write(tmp_path / "b")
+    names = {"points": "/sensing/lidar/top/pointcloud", "detections": "/objects",
+             "head_0": "/member_0", "head_1": "/member_1"}
+    with BagWriter(tmp_path / "u") as w:
+        for m in read_bag(tmp_path / "b"):
+            key = next(k for k in names if topic_of(k) == m.topic)
+            w.write(names[key], m.msgtype, m.stamp_ns, m.raw)
+            w.write("/packets", "velodyne_msgs/msg/VelodyneScan", m.stamp_ns, b"\0\1\0\0" * 4)
+    ref = list(perception_frames(tmp_path / "b", want=("points", "detections"), heads=None))
+    got = list(perception_frames(tmp_path / "u", want=("points", "detections"), heads=None,
+                                 topics=names))
+    assert head_count(tmp_path / "u", names) == 2 and head_count(tmp_path / "u") == 0
+    assert [(f.stamp_ns, f.points, f.detections, f.heads) for f in got] == [
+        (f.stamp_ns, f.points, f.detections, f.heads) for f in ref]
+    with pytest.raises(ValueError, match="unknown topic key"):
+        list(perception_frames(tmp_path / "u", topics={"cloud": "/x"}))
+    capsys.readouterr()
+    # a driver's packets named as the cloud: said, not a traceback
+    with pytest.raises(ValueError, match="VelodyneScan, which is not available here"):
+        list(perception_frames(tmp_path / "u", topics={"points": "/packets"}))
+    assert capsys.readouterr().err.count("velodyne_msgs/msg/VelodyneScan") == 1

@@ -66,3 +66,31 @@ def humble_metadata(bag, *, storage_identifier="", serialization_format="", db_f
         (db,) = bag.glob("*.db3")
         with sqlite3.connect(db) as c:
             c.execute("UPDATE topics SET serialization_format = ?", (db_format,))
+
+
+#: A user's own topic names (Autoware-like) for every perception bag key (``--topic``).
+USER_TOPICS = {"points": "/sensing/lidar/top/pointcloud",
+               "points_gt": "/ground_truth/pointcloud",
+               "gt_objects": "/ground_truth/objects",
+               "detections": "/perception/object_recognition/detection/objects",
+               "proposals": "/perception/object_recognition/detection/proposals",
+               "segmentation": "/perception/segmentation/pointcloud",
+               **{f"head_{k}{v}": f"/ensemble/member_{k}{v}" for k in range(4)
+                  for v in ("", "/variance")}}
+
+
+def user_named_copy(bag, dst, topics=USER_TOPICS):
+    """``bag`` (default perception topic names) with every topic renamed as ``topics`` (key
+    -> name) says, messages, log times and recorded QoS unchanged. Returns the ``--topic``
+    arguments that name them."""
+    from lidar_quality_ros.bag_io import BagWriter, bag_info, read_bag
+    from lidar_quality_ros.perception_bag import topic_of
+
+    rename = {topic_of(k): t for k, t in topics.items()}
+    info = bag_info(bag)
+    with BagWriter(dst) as w:
+        for m in read_bag(bag):
+            w.write(rename.get(m.topic, m.topic), m.msgtype, m.stamp_ns, m.raw,
+                    qos=info.topics[m.topic].qos)
+    present = {rename.get(t, t) for t in info.topics}
+    return [a for k, t in topics.items() if t in present for a in ("--topic", f"{k}={t}")]

@@ -44,7 +44,7 @@ import numpy as np
 from lidar_quality_training.cache import source_hash
 from lidar_quality_core.conventions import TP_IOU
 from lidar_quality_core.progress import Progress
-from lidar_quality_ros.perception_bag import bag_group, resolve_bags
+from lidar_quality_ros.perception_bag import add_topic_option, bag_group, resolve_bags
 
 __all__ = ["TP_IOU", "KITTI_TYPES", "LmdDataset", "Progress", "resolve_bags", "bag_group",
            "load_bags", "load_kitti", "read_kitti_objects", "read_calib", "frame_calib",
@@ -593,6 +593,7 @@ def add_source_args(ap, *, train: bool = True, test: bool = True) -> None:
                        help="ImageSets-style file of the held-out frame ids")
     g.add_argument("--kitti-group-digits", type=int, default=2,
                    help="frame id prefix length that names the sequence (group)")
+    add_topic_option(g)
     g.add_argument("--cache", type=lambda v: Path(v) if v else None,
                    default=Path("out/lmd/cache"),
                    help="feature cache directory ('' to disable)")
@@ -642,4 +643,4 @@ def load_from_args(args, settings_list, part: str) -> dict[str, LmdDataset] | No
     if not paths:
         return None
     return load_bags(paths, settings_list, cache_dir=cache, class_aware=args.class_aware,
-                     progress=progress)
+                     topics=dict(getattr(args, "topic", None) or ()), progress=progress)

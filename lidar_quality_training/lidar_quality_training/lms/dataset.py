@@ -69,6 +69,7 @@ class Source:
     path: Path         # bag directory | sequences/NN directory
     name: str          # e.g. "meta_train/seq_00", "semantickitti/08"
     probabilities: Path | None = None   # semantickitti: directory of the .npy files
+    topics: tuple = ()  # bag: (key, topic) pairs of ``--topic`` (perception_bag keys)
 
     def fingerprint(self) -> list:
         """(name, size, mtime) of the files this source reads."""
@@ -81,13 +82,15 @@ class Source:
         return [[str(p), p.stat().st_size, p.stat().st_mtime_ns] for p in files]
 
 
-def discover_sources(path, probabilities_root=None) -> list[Source]:
+def discover_sources(path, probabilities_root=None, topics=None) -> list[Source]:
     """Sources under ``path``: a bag, a directory of bags, or a SemanticKITTI-style root
     (``sequences/NN``); ``probabilities_root`` holds ``sequences/NN/probabilities``
-    when the .npy files are not under ``path``."""
+    when the .npy files are not under ``path``; ``topics``: the bags' topic names by key
+    (``--topic``)."""
     path = Path(path)
+    topics = tuple(sorted((topics or {}).items()))
     if (path / "metadata.yaml").is_file():
-        return [Source("bag", path, f"{path.parent.name}/{path.name}")]
+        return [Source("bag", path, f"{path.parent.name}/{path.name}", topics=topics)]
     if (path / "sequences").is_dir():
         proot = Path(probabilities_root) if probabilities_root else path
         out = []
@@ -103,7 +106,7 @@ def discover_sources(path, probabilities_root=None) -> list[Source]:
     if path.is_dir():
         bags = sorted(p for p in path.iterdir() if (p / "metadata.yaml").is_file())
         if bags:
-            return [Source("bag", b, f"{path.name}/{b.name}") for b in bags]
+            return [Source("bag", b, f"{path.name}/{b.name}", topics=topics) for b in bags]
     raise FileNotFoundError(f"{path}: neither a perception bag, a directory of bags nor a "
                             "SemanticKITTI-style root (sequences/NN)")
 
@@ -260,7 +263,8 @@ def source_frames(source: Source, settings=None, *, ring_from: str = "points",
         from lidar_quality_ros.perception_bag import perception_frames
 
         want = ("segmentation", "points_gt") + (("points",) if ring_from == "points" else ())
-        for f in perception_frames(source.path, want=want, require="segmentation"):
+        for f in perception_frames(source.path, want=want, require="segmentation",
+                                   topics=dict(source.topics)):
             if wanted is not None and f.index not in wanted:
                 if f.index > max(wanted):
                     return
@@ -370,7 +374,8 @@ def _cache_path(cache_dir: Path, source: Source, settings, ignore_label, ring_fr
     key = json.dumps({"v": CACHE_VERSION, "code": code_version(),
                       "source": source.fingerprint(),
                       "settings": _settings_dict(settings), "ignore": ignore_label,
-                      "ring_from": ring_from if source.kind == "bag" else "none"},
+                      "ring_from": ring_from if source.kind == "bag" else "none",
+                      **({"topics": source.topics} if source.topics else {})},
                      sort_keys=True)
     digest = hashlib.sha256(key.encode()).hexdigest()[:16]
     return Path(cache_dir) / f"{source.name.replace('/', '_')}-{digest}.npz"
@@ -379,9 +384,9 @@ def _cache_path(cache_dir: Path, source: Source, settings, ignore_label, ring_fr
 def _frame_count(source: Source) -> int:
     if source.kind == "bag":
         from lidar_quality_ros.bag_io import bag_info
-        from lidar_quality_ros.perception_bag import DEFAULT_TOPICS
+        from lidar_quality_ros.perception_bag import topic_of
 
-        t = bag_info(source.path).topics.get(DEFAULT_TOPICS["segmentation"])
+        t = bag_info(source.path).topics.get(topic_of("segmentation", dict(source.topics)))
         return t.count if t else 0
     return len(list((source.path / "velodyne").glob("*.bin")))
 
@@ -389,13 +394,14 @@ def _frame_count(source: Source) -> int:
 def build_dataset(paths, settings=None, *, probabilities_root=None,
                   ignore_label: int | None = 0, ring_from: str = "points",
                   block_frames: int = DEFAULT_BLOCK_FRAMES, cache_dir=None,
-                  quiet: bool = False) -> SegmentDataset:
-    """The segment dataset of every sequence under ``paths`` (see :func:`discover_sources`),
-    each sequence read from / written to the ``.npz`` cache in ``cache_dir`` if given."""
+                  quiet: bool = False, topics: dict | None = None) -> SegmentDataset:
+    """The segment dataset of every sequence under ``paths`` (see :func:`discover_sources`;
+    ``topics``: the bags' topic names by key), each sequence read from / written to the
+    ``.npz`` cache in ``cache_dir`` if given."""
     settings = _settings(settings)
     if isinstance(paths, (str, Path)):
         paths = [paths]
-    sources = [s for p in paths for s in discover_sources(p, probabilities_root)]
+    sources = [s for p in paths for s in discover_sources(p, probabilities_root, topics)]
     parts = []
     for k, src in enumerate(sources):
         cpath = (_cache_path(cache_dir, src, settings, ignore_label, ring_from)

@@ -390,7 +390,8 @@ def other_rows(a, settings) -> dict:
     ds = build_dataset(a.test, settings, probabilities_root=a.probabilities,
                        ignore_label=None if a.ignore_label < 0 else a.ignore_label,
                        ring_from=alt, block_frames=a.block_frames,
-                       cache_dir=Path(a.cache) if a.cache else None, quiet=a.quiet)
+                       cache_dir=Path(a.cache) if a.cache else None, quiet=a.quiet,
+                       topics=dict(a.topic))
     models = meta_model.MetaModels(a.models / f"{PREFIX}_classifier.joblib",
                                    a.models / f"{PREFIX}_regressor.joblib", ds.names,
                                    settings=settings, method="lms")
@@ -487,9 +488,10 @@ def main(argv=None) -> int:
             "passed": bool(all(lms["classification"]["auroc"] > b["classification"]["auroc"]
                                and lms["regression"]["r2"] > b["regression"]["r2"]
                                for b in base.values()))}
-        if any(s.kind == "bag" for p in a.test for s in discover_sources(p, a.probabilities)):
+        if any(s.kind == "bag" for p in a.test
+               for s in discover_sources(p, a.probabilities, dict(a.topic))):
             res["heldout_other_rows"] = other_rows(a, settings)
-        src = discover_sources(a.test[0], a.probabilities)[0]
+        src = discover_sources(a.test[0], a.probabilities, dict(a.topic))[0]
         res["figure1"] = figure1(out / "figure1.png", src, a.figure_frame, a.models, settings,
                                  ignore_label=None if a.ignore_label < 0 else a.ignore_label,
                                  ring_from=a.ring_from)

@@ -40,6 +40,7 @@ from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as qm
 from lidar_quality_core.model_store import ModelStoreError
 from lidar_quality_core.progress import Progress
+from lidar_quality_ros.perception_bag import add_topic_option
 
 from ..report import ModelCard, bullets, markdown_table
 from .dataset import DEFAULT_BLOCK_FRAMES, RING_FROM, SegmentDataset, build_dataset
@@ -306,6 +307,7 @@ def add_data_arguments(ap: argparse.ArgumentParser) -> None:
                          "segmentation cloud alone (vertical field of view)")
     ap.add_argument("--block-frames", type=int, default=DEFAULT_BLOCK_FRAMES,
                     help="sub-sequence length for the grouped folds")
+    add_topic_option(ap)
     ap.add_argument("--quiet", action="store_true")
 
 
@@ -327,7 +329,8 @@ def dataset_from_args(a, paths) -> SegmentDataset:
     return build_dataset(paths, settings_from_args(a), probabilities_root=a.probabilities,
                          ignore_label=None if a.ignore_label < 0 else a.ignore_label,
                          ring_from=a.ring_from, block_frames=a.block_frames,
-                         cache_dir=Path(a.cache) if a.cache else None, quiet=a.quiet)
+                         cache_dir=Path(a.cache) if a.cache else None, quiet=a.quiet,
+                         topics=dict(a.topic))
 
 
 def main(argv=None) -> int:

@@ -343,30 +343,34 @@ def settings_for(num_heads: int, **overrides) -> MimoSettings:
     return s
 
 
-def read_bag(bag, *, settings: MimoSettings | None = None, progress: bool = True) -> MimoDataset:
-    """One perception bag -> :class:`MimoDataset` (no cache)."""
+def read_bag(bag, *, settings: MimoSettings | None = None, progress: bool = True,
+             topics: dict | None = None) -> MimoDataset:
+    """One perception bag -> :class:`MimoDataset` (no cache); ``topics``: its topic names by
+    key (``--topic``)."""
     from lidar_quality_ros.bag_io import bag_info
-    from lidar_quality_ros.perception_bag import DEFAULT_TOPICS, head_count, perception_frames
+    from lidar_quality_ros.perception_bag import head_count, perception_frames, topic_of
     from lidar_quality_core.progress import Progress
     from lidar_quality_ros.perception_bag import bag_group
 
     from mimo_ros.pipeline import frame_features, head_detections
 
     bag = Path(bag)
-    k = head_count(bag)
+    k = head_count(bag, topics)
     if k < 1:
-        raise ValueError(f"{bag}: no /perception/head_0 topic (not a multi-head perception bag)")
+        raise ValueError(f"{bag}: no {topic_of('head_0', topics)} topic (not a multi-head "
+                         "perception bag; name its topics with --topic head_0=TOPIC ...)")
     settings = settings or settings_for(k)
     if settings.num_heads != k:
         raise ValueError(f"{bag}: {k} heads, settings for {settings.num_heads}")
     group = bag_group(bag)
     info = bag_info(bag)
-    total = info.topics[DEFAULT_TOPICS["points"]].count \
-        if DEFAULT_TOPICS["points"] in info.topics else None
+    points = topic_of("points", topics)
+    total = info.topics[points].count if points in info.topics else None
     bar = Progress(f"{group}:", total, progress)
     b = _Builder(settings)
     no_gt = no_heads = issues = 0
-    for f in perception_frames(bag, want=("points", "points_gt", "gt_objects"), heads=k):
+    for f in perception_frames(bag, want=("points", "points_gt", "gt_objects"), heads=k,
+                               topics=topics):
         bar.update()
         if f.gt_objects is None:
             no_gt += 1  # no targets without ground truth
@@ -397,25 +401,27 @@ def _code_hash() -> str:
     return source_hash(__file__, pipeline, merging, uncertainty)
 
 
-def _cache_path(cache_dir, bag: Path, settings: MimoSettings) -> Path:
+def _cache_path(cache_dir, bag: Path, settings: MimoSettings, topics=None) -> Path:
     files = sorted(p for p in bag.iterdir() if p.is_file())
     fp = [[str(p.resolve()), p.stat().st_size, p.stat().st_mtime_ns] for p in files]
     payload = json.dumps({"v": CACHE_VERSION, "code": _code_hash(), "files": fp,
-                          "settings": _settings_dict(settings)}, sort_keys=True)
+                          "settings": _settings_dict(settings),
+                          **({"topics": topics} if topics else {})}, sort_keys=True)
     key = hashlib.sha256(payload.encode()).hexdigest()[:16]
     safe = "".join(c if c.isalnum() or c in "-_" else "_" for c in f"{bag.parent.name}_{bag.name}")
     return Path(cache_dir) / f"mimo_{safe}_{key}.npz"
 
 
 def load_bags(paths: Sequence, *, cache_dir=None, progress: bool = True,
-              settings: MimoSettings | None = None) -> MimoDataset:
-    """All bags of ``paths`` (:func:`resolve_bags`) as one dataset, cached per bag."""
+              settings: MimoSettings | None = None, topics: dict | None = None) -> MimoDataset:
+    """All bags of ``paths`` (:func:`resolve_bags`) as one dataset, cached per bag;
+    ``topics``: the bags' topic names by key (``--topic``)."""
     parts = []
     for bag in resolve_bags(paths):
         from lidar_quality_ros.perception_bag import head_count
 
-        s = settings or settings_for(head_count(bag))
-        p = _cache_path(cache_dir, bag, s) if cache_dir is not None else None
+        s = settings or settings_for(max(head_count(bag, topics), 1))
+        p = _cache_path(cache_dir, bag, s, topics) if cache_dir is not None else None
         ds = None
         if p is not None and p.exists():
             try:
@@ -424,7 +430,7 @@ def load_bags(paths: Sequence, *, cache_dir=None, progress: bool = True,
                 if progress:
                     sys.stderr.write(f"cache {p} unreadable ({exc}); rebuilding\n")
         if ds is None:
-            ds = read_bag(bag, settings=s, progress=progress)
+            ds = read_bag(bag, settings=s, progress=progress, topics=topics)
             if p is not None:
                 ds.save(p)
         parts.append(ds)

@@ -329,7 +329,8 @@ def acceptance(res: dict) -> dict:
 
 
 # ------------------------------------------------------------------ figures
-def qualitative_png(path, ds: MimoDataset, frame: int, models: dict, *, max_range: float = 45.0):
+def qualitative_png(path, ds: MimoDataset, frame: int, models: dict, *, max_range: float = 45.0,
+                    topics: dict | None = None):
     """The paper's figure 4 for one frame: BEV overview (points, ground truth, merged boxes
     coloured by meta confidence) and two zoomed true positives (near, far) with their head
     members, the merged box, its 95 % length / width interval and the statistics."""
@@ -344,9 +345,9 @@ def qualitative_png(path, ds: MimoDataset, frame: int, models: dict, *, max_rang
 
     bag = ds.frame_source[frame]
     stamp = int(ds.frame_stamp[frame])
-    k_heads = head_count(bag)
-    f = next(f for f in perception_frames(bag, want=("points", "gt_objects"), heads=k_heads)
-             if f.stamp_ns == stamp)
+    k_heads = head_count(bag, topics)
+    f = next(f for f in perception_frames(bag, want=("points", "gt_objects"), heads=k_heads,
+                                          topics=topics) if f.stamp_ns == stamp)
     settings = settings_for(k_heads)
     fr = frame_features(f.heads, f.head_variances, settings, f.points)
     m = fr.merge
@@ -574,11 +575,11 @@ def update_model_card(card: Path, res: dict, command: str) -> None:
 
 def run(data, models_dir, out, *, cache_dir=None, docs=None, model_card=None,
         es_samples: int = 1000, seed: int = 0, heading_aware: bool = False, quiet: bool = False,
-        command: str = "") -> dict:
+        command: str = "", topics: dict | None = None) -> dict:
     t0 = time.monotonic()
     from mimo_ros.pipeline import MimoSettings
 
-    ds = load_bags(data, cache_dir=cache_dir, progress=not quiet)
+    ds = load_bags(data, cache_dir=cache_dir, progress=not quiet, topics=topics)
     models = {}
     for use_points in (False, True):
         prefix = PREFIXES[use_points]
@@ -607,7 +608,8 @@ def run(data, models_dir, out, *, cache_dir=None, docs=None, model_card=None,
     _, ev_frames = split_groups(ds)
     frame = _pick_frame(ds, ev_frames)
     figures["qualitative"] = out / "mimo_qualitative.png"
-    res["qualitative"] = qualitative_png(figures["qualitative"], ds, frame, models)
+    res["qualitative"] = qualitative_png(figures["qualitative"], ds, frame, models,
+                                         topics=topics)
     res["seconds"] = time.monotonic() - t0
     (out / "summary.json").write_text(json.dumps(jsonable(res, drop_private=True), indent=1, sort_keys=True))
     write_report(out, res, figures)
@@ -639,7 +641,8 @@ def main(argv=None) -> int:
                                                               else sys.argv[1:]))
     res = run(a.data, a.models, a.out, cache_dir=a.cache or None, docs=a.docs or None,
               model_card=a.model_card or None, es_samples=a.es_samples, seed=a.seed,
-              heading_aware=a.heading_aware, quiet=a.quiet, command=command)
+              heading_aware=a.heading_aware, quiet=a.quiet, command=command,
+              topics=dict(a.topic))
     print(markdown_table(["method", "mAP BEV@0.5 [%]", "TP", "FP_ML", "FP_BG"],
                             [[METHODS[k], 100 * r["map_bev50"], r["counts"]["TP"],
                               r["counts"]["FP_ML"], r["counts"]["FP_BG"]]

@@ -31,6 +31,7 @@ from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as qm
 from lidar_quality_core.model_store import ModelStoreError
 from lidar_quality_core.progress import Progress
+from lidar_quality_ros.perception_bag import add_topic_option
 
 from ..report import ModelCard, Section, code_block, markdown_table
 from .dataset import TP_IOU, MimoDataset, load_bags
@@ -98,10 +99,12 @@ def _baseline(ds: MimoDataset) -> dict:
 
 
 def train(data: Sequence, out_dir, *, cache_dir=None, kind: str = "xgboost", folds: int = 6,
-          seed: int = 0, quiet: bool = False, command: str = "") -> dict:
-    """Load the bags, train both pairs, write the model card. Returns the summary."""
+          seed: int = 0, quiet: bool = False, command: str = "",
+          topics: dict | None = None) -> dict:
+    """Load the bags (``topics``: their topic names by key), train both pairs, write the
+    model card. Returns the summary."""
     t0 = time.monotonic()
-    ds = load_bags(data, cache_dir=cache_dir, progress=not quiet)
+    ds = load_bags(data, cache_dir=cache_dir, progress=not quiet, topics=topics)
     if len(ds) == 0:
         raise ValueError(f"no merged detections in the training data ({ds.n_frames} frames)")
     meta_model.cv_fold_count(ds.group, folds, what="sequences (bags)")  # before any fit
@@ -205,6 +208,7 @@ def add_data_arguments(p: argparse.ArgumentParser, default_data: str) -> None:
                    help="perception bags or directories of bags (one sequence per bag)")
     p.add_argument("--cache", default="data/cache/mimo",
                    help="dataset cache directory ('' = no cache)")
+    add_topic_option(p)
     p.add_argument("--quiet", action="store_true", help="no progress output")
 
 
@@ -221,7 +225,7 @@ def main(argv=None) -> int:
                                                                else sys.argv[1:]))
     try:
         s = train(a.data, a.out, cache_dir=a.cache or None, kind=a.kind, folds=a.folds,
-                  seed=a.seed, quiet=a.quiet, command=command)
+                  seed=a.seed, quiet=a.quiet, command=command, topics=dict(a.topic))
     except (ValueError, OSError, ModelStoreError) as exc:  # bad data: say why, no traceback
         print(f"mimo-train: {exc}", file=sys.stderr)
         return 2

@@ -210,3 +210,29 @@ def test_kitti_directory_dataset(tmp_path):
                              progress=False)["none"]
     assert only_none.frame_key.tolist() == ["010000"]
     np.testing.assert_array_equal(only_none.X, data["none"].X[data["none"].frame == 1])
+
+
+def test_topic_options_read_a_bag_under_other_names(bag, tmp_path):
+    """lmd-train / lmd-eval's --topic: a bag under a user's own topic names gives the
+    rows of the same bag under the default names."""
+    import argparse
+
+    from realbags import user_named_copy
+
+    path, _ = bag
+    users = tmp_path / "users" / path.name
+    topic_args = user_named_copy(path, users)
+    ap = argparse.ArgumentParser()
+    D.add_source_args(ap)
+    ref = D.load_from_args(ap.parse_args(["--train", str(path), "--cache", ""]), settings(),
+                           "train")
+    args = ap.parse_args(["--train", str(users), "--cache", "", *topic_args])
+    got = D.load_from_args(args, settings(), "train")
+    for m in MODES:
+        assert len(got[m].X) > 0
+        np.testing.assert_array_equal(got[m].X, ref[m].X)
+        np.testing.assert_array_equal(got[m].iou_any, ref[m].iou_any)
+        assert list(got[m].det_id) == list(ref[m].det_id)
+    with pytest.raises(ValueError, match="no topic /lidar/points"):    # without the options
+        D.load_from_args(ap.parse_args(["--train", str(users), "--cache", ""]), settings(),
+                         "train")

@@ -151,3 +151,26 @@ def test_load_frame_and_bad_sources(data, tmp_path):
     (tmp_path / "sequences" / "00" / "labels").mkdir()
     with pytest.raises(FileNotFoundError, match="probabilities"):
         discover_sources(tmp_path)
+
+
+def test_topic_options_read_bags_under_other_names(data, tmp_path):
+    """lms-train / lms-eval's --topic: bags under a user's own topic names give the
+    segments of the same bags under the default names."""
+    import argparse
+
+    from lidar_quality_training.lms.train import add_data_arguments, dataset_from_args
+    from realbags import user_named_copy
+
+    users = tmp_path / "users"
+    for bag in sorted(data["bags"].iterdir()):
+        topic_args = user_named_copy(bag, users / bag.name)
+    ap = argparse.ArgumentParser()
+    add_data_arguments(ap)
+    ref = dataset_from_args(ap.parse_args(["--cache", "", "--quiet"]), [data["bags"]])
+    got = dataset_from_args(ap.parse_args(["--cache", str(tmp_path / "c"), "--quiet",
+                                           *topic_args]), [users])
+    assert len(got) == len(ref) > 0
+    np.testing.assert_array_equal(got.X, ref.X)
+    np.testing.assert_array_equal(got.iou_adj, ref.iou_adj)
+    with pytest.raises(ValueError, match="no topic /perception/segmentation"):
+        dataset_from_args(ap.parse_args(["--cache", "", "--quiet"]), [users])

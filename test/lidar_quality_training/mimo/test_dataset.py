@@ -99,3 +99,28 @@ def test_a_bag_without_heads_is_refused(bags, tmp_path):
                 w.write(m.topic, m.msgtype, m.stamp_ns, m.raw)
     with pytest.raises(ValueError, match="head_0"):
         read_mimo_bag(dst, progress=False)
+
+
+def test_topic_options_read_bags_under_other_names(bags, ds, tmp_path, capsys):
+    """mimo-train / mimo-eval's --topic: bags under a user's own topic names (heads too)
+    give the clusters of the same bags under the default names."""
+    import argparse
+
+    from lidar_quality_training.mimo.train import add_data_arguments
+    from realbags import user_named_copy
+
+    users = tmp_path / "users"
+    for bag in sorted(bags.iterdir()):
+        topic_args = user_named_copy(bag, users / bag.name)
+    ap = argparse.ArgumentParser()
+    add_data_arguments(ap, "unused")
+    a = ap.parse_args(["--data", str(users), *topic_args])
+    got = load_bags(a.data, progress=False, topics=dict(a.topic))
+    assert len(got) == len(ds) > 0
+    np.testing.assert_array_equal(got.X, ds.X)
+    np.testing.assert_array_equal(got.m_iou_class, ds.m_iou_class)
+    with pytest.raises(ValueError, match="no /perception/head_0 topic"):
+        load_bags([users], progress=False)
+    with pytest.raises(SystemExit):
+        ap.parse_args(["--topic", "head=/x"])
+    assert "unknown topic key 'head'" in capsys.readouterr().err
