@@ -90,8 +90,6 @@ class LmsNode(QualityNode):
     def process(self, messages: list, markers: bool):
         out = self.processor.process(messages[0], messages[1] if self.separate else None,
                                      markers=markers)
-        for key, value in out.values.items():
-            self.diag.set_value(key, round(float(value), 4))
         self._errors = out.errors
         return out
 

@@ -91,6 +91,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_quality_core.conventions import probability_field
+from lidar_quality_core.intensity import INTENSITY_SCALES, IntensityScale
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
@@ -220,6 +221,11 @@ class LmsSettings:
         0.25, "... above which /diagnostics reports ERROR (>= no_pixel_warn_ratio): the image "
         "does not fit the sensor (set sensor, or channels / width / the field of view).",
         min_value=0.0, max_value=1.0)
+    intensity_scale: str = param(
+        "auto", "Scale of input/points' intensity, brought to [0, 1] for the intensity "
+        "metrics (output/points keeps the input's values): 'unit' (already [0, 1], as our "
+        "simulator and SemanticKITTI), 'byte' (0..255, most drivers) or 'auto' (decided "
+        "from the first frames and logged).", choices=INTENSITY_SCALES)
 
     def preset(self) -> beams.SensorPreset | None:
         """The selected sensor preset, or None; ``ValueError`` for an unknown name."""
@@ -520,15 +526,26 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None,
                     ring_issue=ring_issue, n_padding=n_padding, ring_field=ring_name)
 
 
-def frame_metrics(inp: LmsInput, settings: LmsSettings) -> SegmentResult:
+def frame_metrics(inp: LmsInput, settings: LmsSettings,
+                  intensity: IntensityScale | None = None) -> SegmentResult:
     """:func:`compute_segments` of a decoded frame with the settings' image; points with
-    unusable probabilities are left out of the image like non-finite ones."""
+    unusable probabilities are left out of the image like non-finite ones. The intensity
+    metrics read the intensity in [0, 1]: ``intensity`` is the stream's ``IntensityScale``
+    (None: a new one of ``settings.intensity_scale``, deciding on this frame alone)."""
     xyz = inp.xyz
     if inp.n_invalid_points:
         xyz = xyz.copy()
         xyz[~inp.valid] = np.nan
+    inten = inp.intensity
+    if inten is not None:
+        scale = intensity if intensity is not None else IntensityScale(settings.intensity_scale)
+        inten = scale.scale(inten[inp.valid] if inp.n_invalid_points else inten)
+        if inp.n_invalid_points:   # decided on the valid points only
+            full = np.zeros(len(inp), np.float32)
+            full[inp.valid] = inten
+            inten = full
     return compute_segments(xyz, inp.probs, settings.range_config(), ring=inp.ring,
-                            intensity=inp.intensity, min_points=settings.min_segment_points,
+                            intensity=inten, min_points=settings.min_segment_points,
                             class_names=settings.class_names)
 
 
@@ -627,6 +644,8 @@ class LmsOutputs:
     issues: dict             # key -> message of a throttled warning
     errors: frozenset = frozenset()   # keys of ``issues`` at /diagnostics level ERROR
     accounting: dict = field(default_factory=dict)   # point_accounting
+    notes: list = field(default_factory=list)        # decisions to log once (info)
+    intensity_scale: str | None = None               # the scale the metrics read
 
     @property
     def messages(self) -> dict:
@@ -654,7 +673,8 @@ class LmsOutputs:
         a = self.accounting
         return {"points.unprojected_ratio": a["unprojected_ratio"],
                 "points.occluded_ratio": a["occluded_ratio"],
-                "points.no_pixel_ratio": a["no_pixel_ratio"]}
+                "points.no_pixel_ratio": a["no_pixel_ratio"],
+                **({"intensity_scale": self.intensity_scale} if self.intensity_scale else {})}
 
 
 def point_accounting(inp: LmsInput, res: SegmentResult) -> dict:
@@ -690,6 +710,7 @@ class LmsProcessor:
                 "models were trained for another class map")
         self.settings = settings
         self.models = models
+        self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
         #: per-beam elevations estimated from the clouds, kept for the node's lifetime
         self.beam_table = beams.BeamTable(MAX_CHANNELS)
         from lidar_quality_msgs.msg import SegmentQuality, SegmentQualityArray
@@ -701,7 +722,8 @@ class LmsProcessor:
         dropped); bad points never raise."""
         s = self.settings
         inp = decode(points_msg, s, probabilities_msg, self.beam_table)
-        res = frame_metrics(inp, s)
+        self.intensity.note = None
+        res = frame_metrics(inp, s, self.intensity)
         conf_k, iou_k = self.models.predict(res.features)
         ns = res.n_segments
         conf = np.full(ns, np.nan)
@@ -744,7 +766,9 @@ class LmsProcessor:
                 probabilities_msg.header.frame_id != points_msg.header.frame_id):
             issues["frame_id"] = (f"input/points frame_id {points_msg.header.frame_id!r} != "
                                   f"input/probabilities {probabilities_msg.header.frame_id!r}")
-        return LmsOutputs(inp, res, conf, iou, cloud, segs, mk, issues, frozenset(errors), acc)
+        return LmsOutputs(inp, res, conf, iou, cloud, segs, mk, issues, frozenset(errors), acc,
+                          [self.intensity.note] if self.intensity.note else [],
+                          self.intensity.decided)
 
     @staticmethod
     def output_cloud(header, inp: LmsInput, res: SegmentResult, conf, iou):

@@ -623,3 +623,29 @@ def test_organized_ouster_cloud_with_padding(models):
     # rows from the beams' elevations: ring r is row r
     np.testing.assert_array_equal(out.result.projection.row.reshape(H, W)[~pad],
                                   np.broadcast_to(np.arange(H)[:, None], (H, W))[~pad])
+
+
+def test_intensity_scale_auto_reads_both_scales_alike(frames, models):
+    """The same scan with 0..255 intensity: auto reads it as [0, 1] (same metrics and
+    confidences); read as given ('unit'), the intensity metrics are 255x off."""
+    from dataclasses import replace
+
+    f = frames[1]
+    s = _settings()
+    p = noisy_probs(f, 9)
+    xyz = f.xyz.astype(np.float32)
+    assert 0.0 <= f.intensity.min() and f.intensity.max() <= 1.0
+    inten255 = (np.asarray(f.intensity, np.float32) * 255).astype(np.float32)
+    ref = LmsProcessor(s, models).process(cloud(xyz, p, intensity=f.intensity, ring=f.ring))
+    proc = LmsProcessor(s, models)
+    out = proc.process(cloud(xyz, p, intensity=inten255, ring=f.ring))
+    np.testing.assert_allclose(out.result.features, ref.result.features, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(out.confidence, ref.confidence, atol=1e-5)
+    assert out.values["intensity_scale"] == "byte" and "0..255" in out.notes[0]
+    assert ref.values["intensity_scale"] == "unit"
+    # the output cloud keeps the input's own intensity
+    np.testing.assert_array_equal(read_fields(out.points, ["intensity"])[:, 0], inten255)
+    raw = LmsProcessor(replace(s, intensity_scale="unit"), models).process(
+        cloud(xyz, p, intensity=inten255, ring=f.ring))
+    col = list(raw.result.names).index("mean_i")
+    assert np.nanmax(np.abs(raw.result.features[:, col] - ref.result.features[:, col])) > 1.0
