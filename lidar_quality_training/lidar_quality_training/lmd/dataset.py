@@ -43,6 +43,7 @@ from typing import Iterable, Sequence
 import numpy as np
 from lidar_quality_training.cache import source_hash
 from lidar_quality_core.conventions import TP_IOU
+from lidar_quality_core.intensity import INTENSITY_SCALES, IntensityScale
 from lidar_quality_core.progress import Progress
 from lidar_quality_ros.perception_bag import add_topic_option, bag_group, resolve_bags
 
@@ -354,6 +355,8 @@ def _read_bag(bag: Path, settings_list, topics, progress: bool) -> dict:
     info = bag_info(bag)
     total = info.topics[names["points"]].count if names["points"] in info.topics else None
     builders = {s.proposal_mode: _Builder(s) for s in settings_list}
+    # one intensity scale per bag and mode: auto decides over the bag's first frames
+    scales = {s.proposal_mode: IntensityScale(s.intensity_scale) for s in settings_list}
     no_gt = 0
     group = bag_group(bag)
     bar = Progress(f"{group}:", total, progress)
@@ -373,7 +376,8 @@ def _read_bag(bag: Path, settings_list, topics, progress: bool) -> dict:
         gt_pts = _gt_points(f.points, gt_boxes)
         for s in settings_list:
             fr = frame_features(f.points, None if s.proposal_mode == "exact" else f.detections,
-                                None if s.proposal_mode == "none" else f.proposals, s)
+                                None if s.proposal_mode == "none" else f.proposals, s,
+                                intensity=scales[s.proposal_mode])
             builders[s.proposal_mode].add(fr, group, bag, f.stamp_ns, gt_boxes, gt_labels,
                                           gt_ids, gt_pts)
     bar.close()
@@ -506,6 +510,7 @@ def _read_kitti(root, split, results, proposals, ids, settings_list, group_digit
     from lmd_ros.pipeline import frame_features
 
     builders = {s.proposal_mode: _Builder(s) for s in settings_list}
+    scales = {s.proposal_mode: IntensityScale(s.intensity_scale) for s in settings_list}
     bar = Progress(f"KITTI {Path(root).name}/{split}:", len(ids), progress)
     for k, fid in enumerate(ids):
         cloud, det_msg, prop_msg, gt_boxes, gt_names = _kitti_messages(
@@ -516,7 +521,8 @@ def _read_kitti(root, split, results, proposals, ids, settings_list, group_digit
         src = Path(root) / split / "velodyne" / f"{fid}.bin"
         for s in settings_list:
             fr = frame_features(cloud, None if s.proposal_mode == "exact" else det_msg,
-                                None if s.proposal_mode == "none" else prop_msg, s)
+                                None if s.proposal_mode == "none" else prop_msg, s,
+                                intensity=scales[s.proposal_mode])
             builders[s.proposal_mode].add(fr, group, src, fid, gt_boxes, gt_names, gt_ids,
                                           gt_pts)
         bar.update()
@@ -605,6 +611,9 @@ def add_source_args(ap, *, train: bool = True, test: bool = True) -> None:
                    help="threshold mode: BEV IoU > t puts a proposal in the set")
     s.add_argument("--proposal-score-threshold", type=float, default=0.0,
                    help="threshold mode: proposals scoring <= this are ignored")
+    s.add_argument("--intensity-scale", choices=INTENSITY_SCALES, default="auto",
+                   help="the clouds' intensity scale, brought to [0, 1] (unit, byte = 0..255, "
+                        "auto: decided per bag from its first frames, as the node does)")
     s.add_argument("--nms-iou-threshold", type=float, default=0.1, help="exact mode: NMS IoU")
     s.add_argument("--nms-score-threshold", type=float, default=0.1,
                    help="exact mode: proposals scoring below take no part in NMS")
@@ -616,7 +625,9 @@ def settings_from_args(args, modes) -> list:
     return [settings_for(m, iou_threshold=args.iou_threshold,
                          proposal_score_threshold=args.proposal_score_threshold,
                          nms_iou_threshold=args.nms_iou_threshold,
-                         nms_score_threshold=args.nms_score_threshold) for m in modes]
+                         nms_score_threshold=args.nms_score_threshold,
+                         intensity_scale=getattr(args, "intensity_scale", "auto"))
+            for m in modes]
 
 
 def load_from_args(args, settings_list, part: str) -> dict[str, LmdDataset] | None:

@@ -299,6 +299,9 @@ def add_data_arguments(ap: argparse.ArgumentParser) -> None:
                     help="upper vertical field of view [deg] for clouds without a ring field")
     ap.add_argument("--fov-down", type=float, default=None,
                     help="lower vertical field of view [deg] for clouds without a ring field")
+    ap.add_argument("--intensity-scale", choices=("auto", "unit", "byte"), default=None,
+                    help="the clouds' intensity scale, brought to [0, 1] for the intensity "
+                         "metrics (default: the node's, auto)")
     ap.add_argument("--ignore-label", type=int, default=0,
                     help="ground-truth class ignored in the targets (-1: none; default 0 = "
                          "unlabeled)")
@@ -319,7 +322,8 @@ def settings_from_args(a):
     from lms_ros.pipeline import LmsSettings
 
     given = {"min_segment_points": a.min_points, "channels": a.channels, "width": a.width,
-             "fov_up_deg": a.fov_up, "fov_down_deg": a.fov_down}
+             "fov_up_deg": a.fov_up, "fov_down_deg": a.fov_down,
+             "intensity_scale": a.intensity_scale}
     s = dataclasses.replace(LmsSettings(), **{k: v for k, v in given.items() if v is not None})
     s.validate()
     return s
