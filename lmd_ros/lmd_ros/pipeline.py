@@ -194,6 +194,8 @@ class LmdFrame:
     issues: dict = field(default_factory=dict)
     #: header of the frame ``detections.boxes`` are in: the cloud's when they were moved
     boxes_header: object = None
+    points_in: int = 0           # points of the cloud
+    n_padding: int = 0           # of which exact (0, 0, 0) padding (left out, like NaN)
 
 
 def take_detections(arr: DetectionArrays, idx) -> DetectionArrays:
@@ -309,6 +311,12 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
                                "i): the reflectance features need it")
     scale = intensity if intensity is not None else IntensityScale(settings.intensity_scale)
     inten = scale.scale(inten)
+    # exact (0, 0, 0): an organized cloud's no-return padding, not a point (NaN stays truthy)
+    padding = ~np.any(xyz, axis=1)
+    n_padding = int(np.count_nonzero(padding))
+    if n_padding:
+        xyz = xyz.copy()
+        xyz[padding] = np.nan
     if mode != "none" and proposals_msg is None:
         raise ValueError(f'proposal mode "{mode}" needs the proposals')
     transforms = transforms or {}
@@ -372,7 +380,7 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
     moved = ("input/proposals" if mode == "exact" else "input/detections") in transforms
     return LmdFrame(dets, _messages(source, rows), X, valid, _n_finite(xyz, inten),
                     source.header, source, rows, issues,
-                    cloud_msg.header if moved else source.header)
+                    cloud_msg.header if moved else source.header, len(xyz), n_padding)
 
 
 @dataclass
@@ -398,7 +406,10 @@ class LmdOutputs:
 
     @property
     def counts(self) -> dict:
-        return {"detections.in": len(self.kept), "detections.out": int(self.kept.sum()),
+        f = self.frame
+        return {"points.in": f.points_in, "points.padding": f.n_padding,
+                "points.invalid": f.points_in - f.n_points - f.n_padding,
+                "detections.in": len(self.kept), "detections.out": int(self.kept.sum()),
                 "detections.invalid": int((~self.frame.valid).sum())}
 
 

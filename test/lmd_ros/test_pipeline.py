@@ -576,3 +576,19 @@ def test_intensity_scale_auto_gives_the_same_outputs_in_both_scales(threshold_mo
     r = LmdProcessor(s, models).process(frame_messages(rounded, 3)[0], copy.deepcopy(dets),
                                         copy.deepcopy(props))
     assert np.nanmax(np.abs(r.confidence - ref.confidence)) < 0.05
+
+
+def test_padding_points_are_left_out_and_counted(threshold_models):
+    """An organized cloud's (0, 0, 0) no-return pixels are no points: before, they counted
+    in |X| (points_frac) and fell into any box around the sensor."""
+    s, models = threshold_models
+    f = synthetic.synthetic_frame(n_points=20_000, n_objects=12, n_proposals=120, seed=9)
+    cloud, dets, props = frame_messages(f, 3)
+    pts = np.concatenate([f.points, np.zeros((5000, 3)), [[np.nan, 0, 0]]]).astype(np.float32)
+    inten = np.concatenate([f.intensity, np.full(5000, 0.3), [0.1]]).astype(np.float32)
+    padded = create_xyz_cloud(cloud.header, pts, inten)
+    ref = LmdProcessor(s, models).process(cloud, copy.deepcopy(dets), copy.deepcopy(props))
+    out = LmdProcessor(s, models).process(padded, copy.deepcopy(dets), copy.deepcopy(props))
+    np.testing.assert_array_equal(out.frame.features, ref.frame.features)
+    assert out.counts["points.in"] == len(pts) and out.counts["points.padding"] == 5000
+    assert out.counts["points.invalid"] == 1 and ref.counts["points.padding"] == 0
