@@ -383,7 +383,10 @@ def main(argv=None) -> int:
     export(ds, res, conf, pred, args.out, k=max(args.k))
     export(ds, res, conf, pred, args.out, k=max(args.k), ranking="score")
     if args.thumbnails:
-        thumbnails(ds, res, conf, pred, args.out, k=args.thumbnails, errors=errors)
+        # the cloud under the user's topic name (--topic points=...), as the dataset read it
+        points_topic = dict(getattr(args, "topic", None) or ()).get("points", "/lidar/points")
+        thumbnails(ds, res, conf, pred, args.out, k=args.thumbnails, errors=errors,
+                   points=lambda src, key: load_points(src, key, points_topic))
     s = summary(res, errors)
     (args.out / "summary.json").write_text(json.dumps(s, indent=2) + "\n")
     print(f"{s['fp_total']} false positives against the "
