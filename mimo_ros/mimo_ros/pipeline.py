@@ -444,6 +444,10 @@ def frame_features(head_msgs: Sequence, variance_msgs: Sequence | None = None,
         if inten is not None:
             scale = intensity if intensity is not None else IntensityScale(settings.intensity_scale)
             inten = scale.scale(inten)
+        padding = ~np.any(xyz, axis=1)  # an organized cloud's (0, 0, 0): no point (as LMD)
+        if padding.any():
+            xyz = np.array(xyz, dtype=np.float32)
+            xyz[padding] = np.nan
         if "input/points" in transforms:
             xyz = transforms["input/points"].apply_points(xyz)
         cloud_msg = (xyz, inten)

@@ -205,6 +205,11 @@ def test_points_features_of_the_merged_box():
     assert np.isnan(g.features[:, -3:]).all()
     # no cloud at all: NaN point features
     assert np.isnan(frame_features([head_msg(), head_msg()], None, s).features[:, -5:]).all()
+    # an organized cloud's (0, 0, 0) padding is no point (it counted in |X| before)
+    padded = np.vstack([xyz, np.zeros((300, 3), np.float32)])
+    p = frame_features([head_msg(), head_msg()], None, s,
+                       (padded, np.concatenate([inten, np.full(300, 0.5, np.float32)])))
+    np.testing.assert_array_equal(p.features, f.features)
 
 
 def test_settings_validation_and_model_paths():
