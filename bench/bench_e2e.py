@@ -73,9 +73,11 @@ def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=R
         figures[f"e2e.{n}.latency_ms_p50"] = e["latency_ms_p50"]
         figures[f"e2e.{n}.latency_ms_p99"] = e["latency_ms_p99"]
         figures[f"e2e.{n}.dropped"] = e["dropped"]
+        figures[f"e2e.{n}.cpu_ms_per_frame"] = e["cpu_ms_per_frame"]
         _say(f"{n}: {e['received']}/{e['published']} received, latency p50 "
              f"{e['latency_ms_p50']} ms p99 {e['latency_ms_p99']} ms (node processing p50 "
-             f"{e['processing_ms_p50']} p99 {e['processing_ms_p99']} ms), CPU {e['cpu_pct']} %")
+             f"{e['processing_ms_p50']} p99 {e['processing_ms_p99']} ms), CPU {e['cpu_pct']} % "
+             f"= {e['cpu_ms_per_frame']} ms per frame")
 
     # 2. each node alone, stepping the rate
     report["max_rate"] = {}
@@ -90,7 +92,7 @@ def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=R
                      f"{r['achieved_rate_hz']} Hz)")
                 keep = ("published", "received", "dropped", "latency_ms_p50",
                         "latency_ms_p99", "processing_ms_p50", "processing_ms_p99",
-                        "diag_dropped_reasons", "cpu_pct")
+                        "diag_dropped_reasons", "cpu_pct", "cpu_ms_per_frame")
                 return ok, why, {"achieved_rate_hz": r["achieved_rate_hz"],
                                  "late_ticks": r["late_ticks"], **{k: e[k] for k in keep}}
             best, steps = max_sustained_rate(trial, rates)

@@ -101,4 +101,12 @@ def figures():
             c, _, p = inputs()
             return proc_e.process(c, None, p)
         yield "lmd.node_frame_exact_ms", frame_exact, "percentiles"
+        # cost against the cloud size (30k, 120k, 250k points ~ VLS-128), same boxes
+        for n, tag in ((30_000, "30k"), (120_000, "120k"), (250_000, "250k")):
+            w = [serialize_message(m) for m in _messages(n, N_DET, N_PROP, seed=0)[:3]]
+
+            def sized(w=w):
+                return proc.process(deserialize_message(w[0], PointCloud2),
+                                    decode_detection_array(w[1]), decode_detection_array(w[2]))
+            yield f"lmd.node_frame_{tag}_ms", sized, "percentiles"
     tmp.cleanup()

@@ -37,9 +37,19 @@ from bench_lms_metrics import bench_frame  # noqa: E402 - a sibling script: benc
 SETTINGS = LmsSettings(ring_zero_top=True)   # lidar_sim: ring 0 = top beam
 
 
-def frame_message(seed: int = 11, *, quantize: bool = False):
-    """(cloud message, semantic labels) of the bench frame with 14-class probabilities."""
+def frame_message(seed: int = 11, *, quantize: bool = False, n_points: int | None = None):
+    """(cloud message, semantic labels) of the bench frame with 14-class probabilities;
+    ``n_points``: that many of its points (fewer: a random subset; more: the frame repeated
+    with 1 cm jitter, a denser scan of the same scene)."""
     xyz, probs20, ring, inten, sem, _ = bench_frame(seed)
+    if n_points is not None:
+        rng = np.random.default_rng(seed)
+        idx = (np.sort(rng.choice(len(xyz), n_points, replace=False)) if n_points <= len(xyz)
+               else np.arange(n_points) % len(xyz))
+        jitter = np.where((np.arange(n_points) >= len(xyz))[:, None],
+                          rng.normal(0, 0.01, (n_points, 3)), 0.0)
+        xyz, probs20, ring = xyz[idx] + jitter, probs20[idx], ring[idx]
+        inten, sem = inten[idx], sem[idx]
     n = len(SETTINGS.class_names)
     p = probs20[:, :n] / probs20[:, :n].sum(axis=1, keepdims=True)
     if quantize:
@@ -80,6 +90,10 @@ def figures():
         msg8, _ = frame_message(quantize=True)
         yield ("lms.node_frame_ms", lambda: proc.process(msg), "percentiles")
         yield ("lms.node_frame_uint8_ms", lambda: proc.process(msg8), "percentiles")
+        # cost against the cloud size (30k, 120k, 250k points ~ VLS-128), same image
+        for n, tag in ((30_000, "30k"), (120_000, "120k"), (250_000, "250k")):
+            m, _ = frame_message(n_points=n)
+            yield f"lms.node_frame_{tag}_ms", lambda m=m: proc.process(m), "percentiles"
 
 
 if __name__ == "__main__":

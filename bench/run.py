@@ -51,6 +51,20 @@ def time_fn(fn, reps: int, warmup: int = 3) -> np.ndarray:
     return out
 
 
+#: figures also stated as a multiple of the floor: one copy of a 120k-point cloud
+RATIO_TO_COPY = ("core.points_in_boxes_120k_550_ms", "lms.metrics_ms_p50")
+BASELINE = "baseline.copy_cloud_120k_ms"
+
+
+def copy_ratios(results: dict) -> dict:
+    """``ratio.<figure>_to_copy`` for the ``RATIO_TO_COPY`` figures present."""
+    base = results.get(BASELINE)
+    if not base:
+        return {}
+    return {f"ratio.{n.removesuffix('_ms').removesuffix('_ms_p50')}_to_copy":
+            round(results[n] / base, 1) for n in RATIO_TO_COPY if results.get(n) is not None}
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default="out/bench/results.json")
@@ -86,6 +100,9 @@ def main(argv=None) -> int:
     out.parent.mkdir(parents=True, exist_ok=True)
     old = json.loads(out.read_text()) if out.exists() and args.only else {}
     old.update(results)
+    for name, value in copy_ratios(old).items():
+        old[name] = value
+        print(f"{name:45s} {value} x one copy of a 120k-point cloud", flush=True)
     out.write_text(json.dumps(old, indent=2, sort_keys=True) + "\n")
     print(f"wrote {out}")
     return 0

@@ -502,6 +502,9 @@ class LoadTest:
                 "memory": memory_growth(arr[:, 0], arr[:, 1], warmup, window) if len(arr) else {},
                 "cpu_pct": (round(float((arr[-1, 2] - arr[0, 2]) / span * 100), 1)
                             if span > 0 else None),
+                # process CPU time per frame at this rate (all threads: DDS, rclpy, ours)
+                "cpu_ms_per_frame": (round(float((arr[-1, 2] - arr[0, 2]) / span / rate * 1e3),
+                                           2) if span > 0 and rate > 0 else None),
                 "alive": node.proc.poll() is None,
             }
             if keep_series:

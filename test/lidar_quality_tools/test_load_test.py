@@ -88,7 +88,11 @@ def test_e2e_experiment_short(tmp_path):
     figs, report = bench.experiment(names=("mimo",), duration=3.0, warmup=0.0, rates=(10, 20),
                                     window=2.0, out_dir=tmp_path, n_points=5000)
     assert set(figs) == {f"e2e.mimo.{k}" for k in ("latency_ms_p50", "latency_ms_p99",
-                                                   "dropped", "max_rate_hz")}
+                                                   "dropped", "max_rate_hz",
+                                                   "cpu_ms_per_frame")}
+    # the node's process CPU time per frame: positive, and below a whole 100 ms period
+    # times the two cores (a sanity bound on the unit, not a speed assertion)
+    assert 0 < figs["e2e.mimo.cpu_ms_per_frame"] < 200
     e = report["together"]["nodes"]["mimo"]
     assert e["published"] == 30 and 0 < e["received"] <= 30
     assert e["dropped"] == 30 - e["received"] == figs["e2e.mimo.dropped"]
