@@ -261,12 +261,16 @@ def project(xyz, cfg: RangeImageConfig, ring=None) -> Projection:
         contested[vpix[lost]] = True
         shared = contested[vpix]
         sub, p = vidx[shared], vpix[shared]
-        # stable sorts: by pixel, then range, then index (sub is increasing)
-        order = np.argsort(rng[sub], kind="stable")
-        order = order[np.argsort(p[order], kind="stable")]
-        ps = p[order]
-        first = np.r_[True, ps[1:] != ps[:-1]]
-        index[ps[first]] = sub[order][first]
+        # per contested pixel the smallest range, then the lowest index among the points at
+        # it: two unbuffered minima, linear in the points (two stable sorts cost 5x more
+        # when most pixels are contested, as in a dense 250k-point scan)
+        r_sub = rng[sub]
+        best = np.full(R * C, np.inf)
+        np.minimum.at(best, p, r_sub)
+        win = r_sub == best[p]
+        lowest = np.full(R * C, np.iinfo(np.int64).max)
+        np.minimum.at(lowest, p[win], sub[win])
+        index[contested] = lowest[contested]
     return Projection(cfg=cfg, row=row, col=col, pixel=pixel,
                       range=np.where(finite, rng, np.nan).astype(np.float32),
                       valid=valid, out_of_fov=out_of_fov, index=index.reshape(R, C))

@@ -93,6 +93,24 @@ def test_equal_range_tie_goes_to_the_lowest_index():
         assert p.index[p.row[0], p.col[0]] == 0
 
 
+def test_dense_contested_pixels_match_the_rule_point_by_point():
+    """Most pixels contested (a dense scan): every pixel holds its smallest-range point,
+    ties to the lowest index, as a loop over the points finds it."""
+    rng = np.random.default_rng(3)
+    cfg = RangeImageConfig.uniform(8, 32, 10.0, -20.0)
+    n = 3000
+    pts = rng.normal(0, 1, (n, 3)) * [20, 20, 2]
+    pts[::7] = pts[1::7][: len(pts[::7])]            # exact duplicates: equal ranges
+    p = project(pts, cfg)
+    want = np.full(cfg.rows * cfg.cols, -1)
+    best = np.full(cfg.rows * cfg.cols, np.inf)
+    r = np.linalg.norm(pts, axis=1)
+    for i in range(n):
+        if p.valid[i] and r[i] < best[p.pixel[i]]:
+            best[p.pixel[i]], want[p.pixel[i]] = r[i], i
+    np.testing.assert_array_equal(p.index.reshape(-1), want)
+
+
 def test_ring_gives_the_row():
     pts = np.array([_point(10, 5), _point(10, 5), _point(10, 5)])
     p = project(pts, UNI, ring=np.array([0, 3, 4], np.uint16))
