@@ -29,6 +29,7 @@ from typing import Any, Callable, Sequence
 from diagnostic_msgs.msg import DiagnosticStatus
 from lidar_quality_core.frame import FrameRejected
 from lidar_quality_core.input_watchdog import InputWatchdog
+from lidar_quality_core.transforms import TransformBuffer
 from lidar_quality_core.parameters import ParamSpec, from_parameters, param, parameter_specs
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
@@ -38,6 +39,7 @@ from .diagnostics import NodeDiagnostics
 from .params import declare_spec
 from .qos import output_qos
 from .synced_inputs import SyncedInputs
+from .tf_listener import TfListener
 
 _LEVEL = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR}
 
@@ -215,6 +217,15 @@ class QualityNode(Node):
         self._issue_keys |= issues.keys()
 
     # ------------------------------------------------------------------ frames
+    def listen_transforms(self, enabled: bool, tolerance_s: float):
+        """Listen to /tf_static and /tf when ``enabled`` (``self.tf``, a ``TfListener``);
+        the transform buffer for the processor, or None."""
+        self.tf = None
+        if enabled:
+            self.tf = TfListener(self, TransformBuffer(extrapolation_tolerance_s=tolerance_s),
+                                 on_bad=lambda text: self.warn_input("tf", text))
+        return self.tf.buffer if self.tf else None
+
     def create_output(self, msg_type, name: str, qos=None):
         """A publisher of one of :meth:`process`'s output messages (name = topic)."""
         pub = self.create_publisher(msg_type, name, qos if qos is not None else output_qos())

@@ -49,11 +49,9 @@ from __future__ import annotations
 
 
 from lidar_quality_core.detection_cdr import decode_detection_array
-from lidar_quality_core.transforms import TransformBuffer
 from lidar_quality_msgs.msg import DetectionQualityArray
 from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.runner import run_node
-from lidar_quality_ros.tf_listener import TfListener
 from sensor_msgs.msg import PointCloud2
 from vision_msgs.msg import Detection3DArray
 from visualization_msgs.msg import MarkerArray
@@ -72,13 +70,9 @@ class LmdNode(QualityNode):
             raise ValueError(f"invalid parameter: {exc}") from None
         self.settings = p.settings
         self.models = load_models(p, warn=self.get_logger().warning)
-        self.tf = None
-        if p.transform_inputs:
-            self.tf = TfListener(self, TransformBuffer(
-                extrapolation_tolerance_s=p.transform_tolerance),
-                on_bad=lambda text: self.warn_input("tf", text))
+        transforms = self.listen_transforms(p.transform_inputs, p.transform_tolerance)
         self.processor = LmdProcessor(p.settings, self.models, min_confidence=p.min_confidence,
-                                      transforms=self.tf.buffer if self.tf else None,
+                                      transforms=transforms,
                                       transform_inputs=p.transform_inputs)
 
         mode = p.settings.proposal_mode

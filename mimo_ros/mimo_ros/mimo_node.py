@@ -41,11 +41,9 @@ import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
 from lidar_quality_core.detection_cdr import decode_detection_array
-from lidar_quality_core.transforms import TransformBuffer
 from lidar_quality_msgs.msg import BoxVarianceArray, ClusterUncertaintyArray
 from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.runner import run_node
-from lidar_quality_ros.tf_listener import TfListener
 from sensor_msgs.msg import PointCloud2
 from vision_msgs.msg import Detection3DArray
 from visualization_msgs.msg import MarkerArray
@@ -65,13 +63,9 @@ class MimoNode(QualityNode):
         self.settings, self.use_variances = p.settings, p.use_variances
         self.head_timeout = p.head_timeout
         self.models = load_models(p, warn=self.get_logger().warning)
-        self.tf = None
-        if p.transform_inputs:
-            self.tf = TfListener(self, TransformBuffer(
-                extrapolation_tolerance_s=p.transform_tolerance),
-                on_bad=lambda text: self.warn_input("tf", text))
+        transforms = self.listen_transforms(p.transform_inputs, p.transform_tolerance)
         self.processor = MimoProcessor(self.settings, self.models, scores=p.output_scores,
-                                       transforms=self.tf.buffer if self.tf else None,
+                                       transforms=transforms,
                                        transform_inputs=p.transform_inputs)
 
         K = self.settings.num_heads

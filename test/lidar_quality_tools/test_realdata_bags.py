@@ -12,27 +12,17 @@ from lidar_quality_core.pcd import read_pcd
 from lidar_quality_core.pointcloud import create_cloud
 from lidar_quality_ros.bag_io import BagWriter
 from lidar_quality_tools.process import process_bag
-from realdata import REAL_FILES, realdata_dir
+from realdata import PRESETS, REAL_FILES, require_realdata
 from reference_perception.cli import main as perception_main
 from std_msgs.msg import Header
 
 TOPIC = "/sensing/lidar/top/pointcloud"
-PRESETS = {"hesai_40p": "Pandar40P", "hesai_64": "Pandar64", "hesai_at128": "AT128",
-           "hesai_ot128": "OT128", "hesai_qt128": "PandarQT128", "hesai_qt64": "PandarQT64",
-           "hesai_xt16": "PandarXT16", "hesai_xt32": "PandarXT32",
-           "hesai_xt32m": "PandarXT32M", "velodyne_vlp16": "VLP-16",
-           "velodyne_vlp32": "VLP-32C", "velodyne_vls128": "VLS-128"}
 FRAMES = 2
 
 
 @pytest.fixture(scope="module")
 def realdata():
-    d = realdata_dir()
-    missing = [n for n in REAL_FILES if not (d / f"{n}.pcd").is_file()]
-    if missing:
-        pytest.skip(f"real sensor clouds not found in {d} ({len(missing)} missing, e.g. "
-                    f"{missing[0]}.pcd): set LQ_REALDATA or provide ../shared/realdata")
-    return d
+    return require_realdata()
 
 
 def users_bag(path, pcd):

@@ -24,28 +24,17 @@ from lms_ros.pipeline import (CLASS_NAMES, LmsParameters, LmsProcessor, LmsSetti
                               load_models)
 from lms_scans import header
 from node_shell_checks import diag_values, wait_until
-from realdata import REAL_FILES, realdata_dir
+from realdata import PRESETS, REAL_FILES, require_realdata
 from sensor_msgs.msg import PointCloud2
 
 TOPIC = "/sensing/lidar/top/pointcloud_raw_ex"
-#: the preset of each realdata sensor
-PRESETS = {"hesai_40p": "Pandar40P", "hesai_64": "Pandar64", "hesai_at128": "AT128",
-           "hesai_ot128": "OT128", "hesai_qt128": "PandarQT128", "hesai_qt64": "PandarQT64",
-           "hesai_xt16": "PandarXT16", "hesai_xt32": "PandarXT32",
-           "hesai_xt32m": "PandarXT32M", "velodyne_vlp16": "VLP-16",
-           "velodyne_vlp32": "VLP-32C", "velodyne_vls128": "VLS-128"}
 BEFORE = LmsSettings(ring_field="ring")      # the defaults before issue 16
 TABLE: dict[str, tuple[float, float]] = {}   # stem -> (share before, share after)
 
 
 @pytest.fixture(scope="module")
 def realdata():
-    d = realdata_dir()
-    missing = [n for n in REAL_FILES if not (d / f"{n}.pcd").is_file()]
-    if missing:
-        pytest.skip(f"real sensor clouds not found in {d} ({len(missing)} missing, e.g. "
-                    f"{missing[0]}.pcd): set LQ_REALDATA or provide ../shared/realdata")
-    return d
+    return require_realdata()
 
 
 @pytest.fixture(scope="module")

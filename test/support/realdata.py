@@ -12,3 +12,23 @@ REAL_FILES = ["hesai_40p", "hesai_64", "hesai_at128", "hesai_ot128", "hesai_qt12
 def realdata_dir() -> Path:
     env = os.environ.get("LQ_REALDATA")
     return Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "realdata"
+
+
+#: the LMS sensor preset of each real sensor
+PRESETS = {"hesai_40p": "Pandar40P", "hesai_64": "Pandar64", "hesai_at128": "AT128",
+           "hesai_ot128": "OT128", "hesai_qt128": "PandarQT128", "hesai_qt64": "PandarQT64",
+           "hesai_xt16": "PandarXT16", "hesai_xt32": "PandarXT32",
+           "hesai_xt32m": "PandarXT32M", "velodyne_vlp16": "VLP-16",
+           "velodyne_vlp32": "VLP-32C", "velodyne_vls128": "VLS-128"}
+
+
+def require_realdata() -> Path:
+    """The real clouds' directory, or a pytest skip saying what is missing and how to fix it."""
+    import pytest
+
+    d = realdata_dir()
+    missing = [n for n in REAL_FILES if not (d / f"{n}.pcd").is_file()]
+    if missing:
+        pytest.skip(f"real sensor clouds not found in {d} ({len(missing)} missing, e.g. "
+                    f"{missing[0]}.pcd): set LQ_REALDATA or provide ../shared/realdata")
+    return d
