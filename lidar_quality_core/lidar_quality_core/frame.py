@@ -4,8 +4,9 @@
 publication order), ``markers`` (or None), ``issues`` (warning cause -> text: input
 problems of this frame, the frame still goes out) and ``counts`` (name -> increment, summed
 into diagnostics and process_bag's summary), and optionally ``notes`` (decisions to log
-once at info level, e.g. an ``intensity_scale: auto`` decision) and ``values`` (diagnostics
-values of the latest frame). A frame that cannot be processed raises
+once at info level, e.g. an ``intensity_scale: auto`` decision), ``values`` (diagnostics
+values of the latest frame) and ``errors`` (the keys of ``issues`` at level ERROR rather
+than WARN). A frame that cannot be processed raises
 :class:`FrameRejected`: it is dropped and counted under its ``reason``. The node base class
 (``lidar_quality_ros.node_base.QualityNode``) and ``process_bag`` run processors this way.
 """
@@ -34,3 +35,4 @@ class FrameOutputs:
     counts: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)
     values: dict = field(default_factory=dict)
+    errors: frozenset = frozenset()

@@ -22,7 +22,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["INTENSITY_SCALES", "FACTORS", "AUTO_FRAMES", "UNIT_MAX", "IntensityScale"]
+from lidar_quality_core.parameters import param
+
+__all__ = ["INTENSITY_SCALES", "FACTORS", "AUTO_FRAMES", "UNIT_MAX", "IntensityScale",
+           "intensity_scale_param"]
 
 INTENSITY_SCALES = ("auto", "unit", "byte")
 FACTORS = {"unit": 1.0, "byte": 1.0 / 255.0}
@@ -82,3 +85,12 @@ class IntensityScale:
         if self.frames > 1:
             text += " (changed after the first frames)"
         return text
+
+
+def intensity_scale_param(used_for: str):
+    """The ``intensity_scale`` parameter field of a method's settings (one declaration:
+    ``lidar_quality_core.parameters``); ``used_for`` says what reads the scaled intensity."""
+    return param("auto", f"Scale of input/points' intensity, brought to [0, 1] for {used_for}: "
+                         "'unit' (already [0, 1], as our simulator and KITTI), 'byte' (0..255, "
+                         "most drivers) or 'auto' (decided from the first frames and logged).",
+                 choices=INTENSITY_SCALES)

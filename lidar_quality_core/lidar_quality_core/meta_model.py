@@ -48,6 +48,7 @@ import numpy as np
 from . import metrics as M
 from .model_store import (LoadedModel, ModelStoreError, ModelStoreWarning, SettingRule,
                           check_training_settings, load_model, read_manifest, save_model)
+from .parameters import param
 
 __all__ = ["KINDS", "TASKS", "make_estimator", "fit_estimator", "predict", "group_folds",
            "FoldMetrics", "CVResult", "cross_validate", "GreedyResult", "greedy_selection",
@@ -555,7 +556,5 @@ def model_path_param(role: str, target: str, shipped: str):
     """The ``classifier_path`` / ``regressor_path`` parameter field of a node's parameters
     (``lidar_quality_core.parameters``): ``role`` classifier | regressor, ``target`` what it
     predicts, ``shipped`` the model used when the parameter is empty."""
-    from lidar_quality_core.parameters import param
-
     return param("", f"Meta {role} ({target}; model store file with manifest); empty: the "
                      f"shipped {shipped}.")

@@ -16,7 +16,7 @@ from dataclasses import MISSING, dataclass
 from typing import Any, Callable, Mapping
 
 __all__ = ["ParamSpec", "param", "group", "parameter_specs", "from_parameters", "check_value",
-           "check_fields", "to_parameters"]
+           "check_fields", "to_parameters", "validate"]
 
 _KEY = "lq_param"
 _GROUP = "lq_group"
@@ -127,6 +127,17 @@ def to_parameters(settings) -> dict:
         elif _KEY in f.metadata:
             out[f.name] = ParamSpec(name=f.name, **f.metadata[_KEY]).param_value(v)
     return out
+
+
+def validate(settings) -> None:
+    """Run the ``validate()`` of ``settings`` and of every group in it that has one (the
+    checks across parameters, e.g. an image too large, ``min_cluster_size`` > heads)."""
+    for f in _fields(settings):
+        if f.metadata.get(_GROUP):
+            validate(getattr(settings, f.name))
+    own = getattr(settings, "validate", None)
+    if callable(own):
+        own()
 
 
 def check_fields(settings) -> None:

@@ -31,6 +31,7 @@ import numpy as np
 
 from .boxes import TILT_TOLERANCE_DEG, quaternion_to_rpy
 from .frame import FrameRejected
+from .parameters import param
 
 __all__ = ["Transform", "TransformError", "ConnectivityError", "ExtrapolationError",
            "TransformBuffer", "Lookup", "transform_from_msg", "add_tf_message", "stamp_ns",
@@ -463,3 +464,10 @@ def input_transforms(target: str, inputs: dict, lookup: Lookup | None, *,
         if not t.is_identity(0.0):
             out[name] = t
     return out, notes
+
+
+def transform_tolerance_param():
+    """The ``transform_tolerance`` parameter field of the nodes that transform their inputs."""
+    return param(0.05, "Seconds a stamp may lie outside the samples of a moving (/tf) transform "
+                       "and still take the nearest one (static transforms hold at any time).",
+                 min_value=0.0)

@@ -30,7 +30,8 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from lidar_quality_core.frame import FrameRejected
 from lidar_quality_core.input_watchdog import InputWatchdog
 from lidar_quality_core.transforms import TransformBuffer
-from lidar_quality_core.parameters import ParamSpec, from_parameters, param, parameter_specs
+from lidar_quality_core.parameters import (ParamSpec, from_parameters, param,
+                                           parameter_specs, validate)
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.clock import Clock, ClockType
 from rclpy.node import Node
@@ -66,6 +67,14 @@ class CommonParameters:
     input_error_timeout: float = param(
         10.0, "Seconds without a matched input set, while inputs arrive, after which "
         "/diagnostics reports ERROR (>= input_timeout).", min_value=0.1)
+
+    def validate(self) -> None:
+        if self.drop_error_fraction < self.drop_warn_fraction:
+            raise ValueError(f"parameter 'drop_error_fraction' = {self.drop_error_fraction} "
+                             f"is below 'drop_warn_fraction' = {self.drop_warn_fraction}")
+        if self.input_error_timeout < self.input_timeout:
+            raise ValueError(f"parameter 'input_error_timeout' = {self.input_error_timeout} "
+                             f"is below 'input_timeout' = {self.input_timeout}")
 
 
 @dataclass(frozen=True)
@@ -129,12 +138,6 @@ class QualityNode(Node):
         self._live: dict[str, tuple[Callable[[Any], None], ParamSpec]] = {}
         self.add_on_set_parameters_callback(self._on_set_parameters)
         c = self.declare_settings(CommonParameters)
-        if c.drop_error_fraction < c.drop_warn_fraction:
-            raise ValueError(f"parameter 'drop_error_fraction' = {c.drop_error_fraction} is "
-                             f"below 'drop_warn_fraction' = {c.drop_warn_fraction}")
-        if c.input_error_timeout < c.input_timeout:
-            raise ValueError(f"parameter 'input_error_timeout' = {c.input_error_timeout} "
-                             f"is below 'input_timeout' = {c.input_timeout}")
         self.input_timeout, self.input_error_timeout = c.input_timeout, c.input_error_timeout
         self.diag = NodeDiagnostics(self, period_s=c.diagnostics_period,
                                     window_s=c.diagnostics_window,
@@ -160,8 +163,8 @@ class QualityNode(Node):
 
     def declare_settings(self, cls, live: dict[str, Callable[[Any], None]] | None = None):
         """Declare the parameters of settings class ``cls`` (one declaration each, in its
-        fields' metadata) and return the instance; ``live``: per run-time parameter, the
-        function that applies a new value."""
+        fields' metadata) and return the instance, validated (``parameters.validate``);
+        ``live``: per run-time parameter, the function that applies a new value."""
         live = dict(live or {})
         values = {}
         for spec in parameter_specs(cls):
@@ -172,7 +175,12 @@ class QualityNode(Node):
                 self._live[spec.name] = (live.pop(spec.name), spec)
         if live:
             raise ValueError(f"apply functions for parameters that are not live: {sorted(live)}")
-        return from_parameters(cls, values)
+        settings = from_parameters(cls, values)
+        try:
+            validate(settings)
+        except ValueError as exc:
+            raise ValueError(f"invalid parameter: {exc}") from None
+        return settings
 
     def _on_set_parameters(self, params) -> SetParametersResult:
         for p in params:
@@ -207,11 +215,13 @@ class QualityNode(Node):
             self.get_logger().warn(message)
         self.diag.warn(key, message, level, transient=transient)
 
-    def report_issues(self, issues: dict[str, str]) -> None:
-        """Warn each input problem of a frame under its own cause; clear the causes of
-        earlier frames that this frame does not have (shown for a while longer)."""
+    def report_issues(self, issues: dict[str, str], errors=frozenset()) -> None:
+        """Warn each input problem of a frame under its own cause (``errors``: the causes
+        at level ERROR); clear the causes of earlier frames that this frame does not have
+        (shown for a while longer)."""
         for key, text in issues.items():
-            self.warn_input(key, text)
+            self.warn_input(key, text, DiagnosticStatus.ERROR if key in errors
+                            else DiagnosticStatus.WARN)
         for key in self._issue_keys - issues.keys():
             self.diag.clear(key)
         self._issue_keys |= issues.keys()
@@ -266,7 +276,7 @@ class QualityNode(Node):
             return
         for cause in self._drop_causes:
             self.diag.clear(cause)
-        self.report_issues(out.issues)
+        self.report_issues(out.issues, out.errors)
         for name, msg in out.messages.items():
             self._outputs[name].publish(msg)
         if out.markers is not None and self.pub_markers is not None:
@@ -274,9 +284,9 @@ class QualityNode(Node):
         for key, n in out.counts.items():
             self._counts[key] += n
             self.diag.set_value(key, self._counts[key])
-        for text in getattr(out, "notes", ()):
+        for text in out.notes:
             self.get_logger().info(text)
-        for key, value in getattr(out, "values", {}).items():
+        for key, value in out.values.items():
             self.diag.set_value(key, value)
         self.diag.frame_processed((time.perf_counter() - t0) * 1e3)
 

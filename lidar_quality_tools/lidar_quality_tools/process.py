@@ -123,10 +123,10 @@ def node_parameters(node: str, overrides: dict | None = None) -> dict:
 def node_config(node: str, params: dict):
     """The node's parameters object (``parameters_class``) of ``params``, its settings
     validated as the node validates them."""
-    from lidar_quality_core.parameters import from_parameters
+    from lidar_quality_core.parameters import from_parameters, validate
 
     config = from_parameters(parameters_class(node), params)
-    config.settings.validate()
+    validate(config)
     return config
 
 
@@ -360,9 +360,9 @@ def _process_frame(frame: _Frame, runners, stats, warn, write) -> None:
         for key, text in out.issues.items():
             st.issues[key] += 1
             warn(r.name, key, f"stamp {frame.stamp_ns}: {text}")
-        for text in getattr(out, "notes", ()):   # decisions (e.g. intensity_scale: auto)
+        for text in out.notes:   # decisions (e.g. intensity_scale: auto)
             warn(r.name, "note", text)
-        st.values.update(getattr(out, "values", {}))
+        st.values.update(out.values)
         for (topic, msgtype), msg in zip(OUTPUTS[r.name], out.messages.values()):
             write(topic, msgtype, log_ns, msg)
 

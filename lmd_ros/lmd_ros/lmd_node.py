@@ -64,10 +64,6 @@ class LmdNode(QualityNode):
         super().__init__("lmd_node", **kwargs)
         p = self.declare_settings(LmdParameters, live={
             "min_confidence": lambda v: setattr(self.processor, "min_confidence", float(v))})
-        try:
-            p.settings.validate()
-        except ValueError as exc:
-            raise ValueError(f"invalid parameter: {exc}") from None
         self.settings = p.settings
         self.models = load_models(p, warn=self.get_logger().warning)
         transforms = self.listen_transforms(p.transform_inputs, p.transform_tolerance)

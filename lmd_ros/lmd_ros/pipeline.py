@@ -61,12 +61,12 @@ import numpy as np
 from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt_issue
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
                                               rescaled_scores)
-from lidar_quality_core.intensity import INTENSITY_SCALES, IntensityScale
+from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import check_fields, group, param
 from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
-from lidar_quality_core.transforms import Transform, input_transforms
+from lidar_quality_core.transforms import Transform, input_transforms, transform_tolerance_param
 from lidar_quality_core.lmd import features
 from lidar_quality_core.lmd.proposal_sets import nms_preimages
 
@@ -103,11 +103,7 @@ class LmdSettings:
         ["car", "truck", "pedestrian", "cyclist"],
         "Class names in the order of the models' class feature (class id = position); a "
         "detection of another class gets NaN confidence.")
-    intensity_scale: str = param(
-        "auto", "Scale of input/points' intensity, brought to [0, 1] for the reflectance "
-        "features: 'unit' (already [0, 1], as our simulator and KITTI), 'byte' (0..255, most "
-        "drivers) or 'auto' (decided from the first frames and logged).",
-        choices=INTENSITY_SCALES)
+    intensity_scale: str = intensity_scale_param("the reflectance features")
     #: Append the detector's per-class scores (``class_score_<name>``, in ``class_names``
     #: order) to the paper's features (features module: optional extras).
     class_score_features: bool = False
@@ -143,9 +139,7 @@ class LmdParameters:
         "(/tf_static, /tf) when their frame_id differs; a frame whose transform is missing is "
         "dropped (counted as no_transform, with a warning naming the frames). false: compute "
         "as if the frames were equal (warning frame_id).")
-    transform_tolerance: float = param(
-        0.05, "Seconds a stamp may lie outside the samples of a moving (/tf) transform and "
-        "still take the nearest one (static transforms hold at any time).", min_value=0.0)
+    transform_tolerance: float = transform_tolerance_param()
     classifier_path: str = model_path_param(
         "classifier", "confidence", "models/lmd/lmd_<proposal_mode>_classifier.joblib")
     regressor_path: str = model_path_param(
@@ -399,6 +393,7 @@ class LmdOutputs:
     issues: dict = field(default_factory=dict)
     notes: list = field(default_factory=list)     # decisions to log once (info)
     values: dict = field(default_factory=dict)    # diagnostics values of this frame
+    errors: frozenset = frozenset()               # keys of ``issues`` at level ERROR
 
     @property
     def messages(self) -> dict:

@@ -38,7 +38,6 @@ image geometry load with a logged warning and the value ``model.geometry``.
 """
 from __future__ import annotations
 
-from diagnostic_msgs.msg import DiagnosticStatus
 from lidar_quality_msgs.msg import SegmentQualityArray
 from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.qos import output_qos
@@ -53,15 +52,10 @@ class LmsNode(QualityNode):
     def __init__(self, **kwargs):
         super().__init__("lms_node", **kwargs)
         p = self.declare_settings(LmsParameters)
-        try:
-            p.settings.validate()
-        except ValueError as exc:
-            raise ValueError(f"invalid parameter: {exc}") from None
         self.separate = p.separate_probabilities
         self.settings = p.settings.resolved()
         self.models = load_models(p, warn=self.get_logger().warning)
         self.processor = LmsProcessor(self.settings, self.models)
-        self._errors: frozenset = frozenset()
 
         self.create_output(PointCloud2, "output/points", output_qos(5))
         self.create_output(SegmentQualityArray, "output/segments")
@@ -88,17 +82,8 @@ class LmsNode(QualityNode):
             f"inputs: {', '.join(self.inputs.topics)}")
 
     def process(self, messages: list, markers: bool):
-        out = self.processor.process(messages[0], messages[1] if self.separate else None,
-                                     markers=markers)
-        self._errors = out.errors
-        return out
-
-    def report_issues(self, issues: dict[str, str]) -> None:
-        """As the base class, with the processor's ERROR-level causes (a frame whose share
-        of points without a pixel exceeds no_pixel_error_ratio) raised to ERROR."""
-        super().report_issues(issues)
-        for key in self._errors & issues.keys():
-            self.diag.warn(key, issues[key], DiagnosticStatus.ERROR)
+        return self.processor.process(messages[0], messages[1] if self.separate else None,
+                                      markers=markers)
 
 
 def main(args=None) -> int:

@@ -91,7 +91,7 @@ from pathlib import Path
 import numpy as np
 
 from lidar_quality_core.conventions import probability_field
-from lidar_quality_core.intensity import INTENSITY_SCALES, IntensityScale
+from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
@@ -221,11 +221,8 @@ class LmsSettings:
         0.25, "... above which /diagnostics reports ERROR (>= no_pixel_warn_ratio): the image "
         "does not fit the sensor (set sensor, or channels / width / the field of view).",
         min_value=0.0, max_value=1.0)
-    intensity_scale: str = param(
-        "auto", "Scale of input/points' intensity, brought to [0, 1] for the intensity "
-        "metrics (output/points keeps the input's values): 'unit' (already [0, 1], as our "
-        "simulator and SemanticKITTI), 'byte' (0..255, most drivers) or 'auto' (decided "
-        "from the first frames and logged).", choices=INTENSITY_SCALES)
+    intensity_scale: str = intensity_scale_param(
+        "the intensity metrics (output/points keeps the input's values)")
 
     def preset(self) -> beams.SensorPreset | None:
         """The selected sensor preset, or None; ``ValueError`` for an unknown name."""

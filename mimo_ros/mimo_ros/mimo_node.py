@@ -56,10 +56,6 @@ class MimoNode(QualityNode):
         super().__init__("mimo_node", **kwargs)
         p = self.declare_settings(MimoParameters, live={
             "output_scores": lambda v: setattr(self.processor, "scores", v)})
-        try:
-            p.settings.validate()
-        except ValueError as exc:
-            raise ValueError(f"invalid parameter: {exc}") from None
         self.settings, self.use_variances = p.settings, p.use_variances
         self.head_timeout = p.head_timeout
         self.models = load_models(p, warn=self.get_logger().warning)

@@ -56,11 +56,11 @@ from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
                                       detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
 from lidar_quality_core.frame import FrameRejected
-from lidar_quality_core.intensity import INTENSITY_SCALES, IntensityScale
+from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
-from lidar_quality_core.transforms import Transform, input_transforms
+from lidar_quality_core.transforms import Transform, input_transforms, transform_tolerance_param
 
 from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, MergeResult, merge_heads
 from lidar_quality_core.mimo.uncertainty import BOX_PARAMS
@@ -107,10 +107,7 @@ class MimoSettings:
     class_names: tuple = param(
         list(DEFAULT_CLASS_NAMES), "Foreground class names of the heads' hypotheses, in the "
         "order of the meta models' class feature.")
-    intensity_scale: str = param(
-        "auto", "use_points: scale of input/points' intensity, brought to [0, 1] for the "
-        "reflectance features: 'unit' (already [0, 1]), 'byte' (0..255, most drivers) or "
-        "'auto' (decided from the first frames and logged).", choices=INTENSITY_SCALES)
+    intensity_scale: str = intensity_scale_param("the reflectance features (use_points)")
 
     def feature_names(self) -> tuple[str, ...]:
         return STAT_FEATURES + (POINT_FEATURES if self.use_points else ())
@@ -164,9 +161,7 @@ class MimoParameters:
         "into that frame (/tf_static, /tf); a frame whose transform is missing is dropped "
         "(counted as no_transform, with a warning naming the frames). false: merge as if "
         "the frames were equal (warning).")
-    transform_tolerance: float = param(
-        0.05, "Seconds a stamp may lie outside the samples of a moving (/tf) transform and "
-        "still take the nearest one (static transforms hold at any time).", min_value=0.0)
+    transform_tolerance: float = transform_tolerance_param()
     output_scores: str = param(
         "confidence", "Hypothesis scores of output/detections: 'confidence' (the merged class "
         "distribution scaled so that the top score is the meta confidence) or 'merged' (the "
@@ -573,6 +568,7 @@ class MimoFrameOutputs:
     markers: object = None       # MarkerArray, or None when not asked for
     notes: list = field(default_factory=list)     # decisions to log once (info)
     values: dict = field(default_factory=dict)    # diagnostics values of this frame
+    errors: frozenset = frozenset()               # keys of ``issues`` at level ERROR
 
     @property
     def messages(self) -> dict:
