@@ -13,6 +13,7 @@ from lidar_quality_ros.perception_bag import DEFAULT_TOPICS, HEAD_TOPIC, percept
 from lidar_quality_ros.qos import SENSOR_QOS
 from lidar_quality_tools.process import OUTPUTS, Drop, Runner, _run, main, process_bag
 from lmd_ros.pipeline import LmdProcessor, LmdSettings, default_model_paths
+from tf_scenes import detections_in_frame
 from node_shell_checks import executable
 from perception_bags import simulated_perception_bags
 from realbags import REAL_BAGS, real_bag
@@ -375,11 +376,9 @@ def test_detections_in_another_frame_with_tf_static(tmp_path):
     """Issue 16 (frames): detections / proposals in base_link and /tf_static base_link <-
     lidar_top in the bag give the outputs of the same scene recorded in one frame; without
     the transform every frame is dropped as no_transform."""
-    import copy
 
     from geometry_msgs.msg import TransformStamped
     from lidar_quality_core import synthetic
-    from lidar_quality_core.boxes import detections_to_arrays, yaw_to_quaternion
     from lidar_quality_core.transforms import Transform
     from lmd_frames import frame_messages
     from std_msgs.msg import Header
@@ -388,14 +387,7 @@ def test_detections_in_another_frame_with_tf_static(tmp_path):
     t_base_lidar = Transform.from_yaw(0.3, (1.2, 0.1, 1.8))
 
     def moved(msg):
-        out = copy.deepcopy(msg)
-        out.header.frame_id = "base_link"
-        b, _ = t_base_lidar.apply_boxes(detections_to_arrays(msg).boxes)
-        for d, row, q in zip(out.detections, b, yaw_to_quaternion(b[:, 6])):
-            p, o = d.bbox.center.position, d.bbox.center.orientation
-            p.x, p.y, p.z = row[:3].tolist()
-            o.x, o.y, o.z, o.w = q.tolist()
-        return out
+        return detections_in_frame(msg, t_base_lidar, "base_link")
 
     def write(path, base_link, tf):
         with BagWriter(path) as w:

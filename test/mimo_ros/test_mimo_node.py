@@ -1,12 +1,10 @@
 """mimo_node: parameters, merged outputs equal to the pipeline + meta models, stopped heads,
 variance and point inputs, malformed heads, model refusal, the installed executable."""
-import copy
 import subprocess
 
 import numpy as np
 import pytest
 from geometry_msgs.msg import TransformStamped
-from lidar_quality_core.boxes import detections_to_arrays, yaw_to_quaternion
 from lidar_quality_core.iou import iou_3d
 from lidar_quality_core.meta_model import MetaModels, fit_estimator, save_pair
 from lidar_quality_core.pointcloud import create_xyz_cloud, xyz_intensity
@@ -17,6 +15,7 @@ from lidar_quality_msgs.msg import BoxVarianceArray, ClusterUncertaintyArray
 from mimo_ros.mimo_node import MimoNode
 from mimo_ros.pipeline import (DEFAULT_CLASS_NAMES, MimoSettings, default_model_paths,
                                frame_features, process_frame)
+from tf_scenes import detections_in_frame
 from node_shell_checks import (assert_declared_with_descriptions, assert_sensor_qos,
                                assert_yaml_matches_declared, diag_values, executable,
                                run_executable_and_signal, wait_until)
@@ -370,7 +369,7 @@ def test_heads_in_other_frames(ros, model_dir):
     models = MetaModels(p["classifier_path"], p["regressor_path"], settings.feature_names())
     _, heads, variances, _ = make_frame(4)
     ref = process_frame(heads[0].header, heads, variances, settings, models)
-    moved = in_frame_boxes(heads[1], T_BASE_LIDAR, "base_link")
+    moved = detections_in_frame(heads[1], T_BASE_LIDAR, "base_link")
     rig.send([heads[0], moved], variances)
     assert rig.unc.wait_for(1) and rig.dets.wait_for(1)
     u, d = rig.unc.messages[0], rig.dets.messages[0]
@@ -381,22 +380,10 @@ def test_heads_in_other_frames(ros, model_dir):
     assert [x.id for x in d.detections] == ref.frame.merged_ids()
     # a head in a frame nobody publishes: dropped, counted, named
     _, heads, variances, _ = make_frame(5)
-    rig.send([heads[0], in_frame_boxes(heads[1], T_BASE_LIDAR, "radar")], variances)
+    rig.send([heads[0], detections_in_frame(heads[1], T_BASE_LIDAR, "radar")], variances)
     assert wait_until(lambda: diag_values(rig.node.diag.status()).get("dropped.no_transform")
                       == "1")
     assert "head 1: no transform from 'radar' to 'lidar'" in rig.node.diag.status().message
-
-
-def in_frame_boxes(msg, t, frame_id):
-    """A copy of Detection3DArray ``msg`` with its (upright) boxes moved by ``t``."""
-    out = copy.deepcopy(msg)
-    out.header = Header(stamp=msg.header.stamp, frame_id=frame_id)
-    moved, _ = t.apply_boxes(detections_to_arrays(msg).boxes)
-    for det, b, q in zip(out.detections, moved, yaw_to_quaternion(moved[:, 6])):
-        pos, o = det.bbox.center.position, det.bbox.center.orientation
-        pos.x, pos.y, pos.z = b[:3].tolist()
-        o.x, o.y, o.z, o.w = q.tolist()
-    return out
 
 
 def test_malformed_heads_do_not_kill_the_node(ros, model_dir):
