@@ -322,6 +322,23 @@ def valid_points(xyz: np.ndarray) -> np.ndarray:
     return mask
 
 
+class PaddingNote:
+    """Says once per stream that a cloud has (0, 0, 0) padding points (an organized cloud's
+    no-return pixels): they are left out and counted, which is right, so a log line and the
+    count, not a warning."""
+
+    def __init__(self):
+        self.said = False
+
+    def __call__(self, n_padding: int, n_points: int, input_name: str = "input/points") -> list:
+        if not n_padding or self.said:
+            return []
+        self.said = True
+        return [f"{input_name} has (0, 0, 0) padding points ({n_padding} of {n_points} in "
+                "this frame: an organized cloud's pixels without a return): left out of every "
+                "feature and counted as points.padding in /diagnostics"]
+
+
 def _alloc_bytes(nbytes: int) -> array.array:
     # Repeating a 1-element array is a memset: the cheapest zeroed array.array('B').
     return array.array("B", b"\0") * nbytes

@@ -65,7 +65,7 @@ from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import check_fields, group, param
-from lidar_quality_core.pointcloud import CloudFormatError, xyz_intensity
+from lidar_quality_core.pointcloud import CloudFormatError, PaddingNote, xyz_intensity
 from lidar_quality_core.transforms import Transform, input_transforms, transform_tolerance_param
 from lidar_quality_core.lmd import features
 from lidar_quality_core.lmd.proposal_sets import nms_preimages
@@ -403,7 +403,8 @@ class LmdOutputs:
     def counts(self) -> dict:
         f = self.frame
         return {"points.in": f.points_in, "points.padding": f.n_padding,
-                "points.invalid": f.points_in - f.n_points - f.n_padding,
+                # as LMS: invalid = not used (NaN / inf or padding), of which padding
+                "points.invalid": f.points_in - f.n_points,
                 "detections.in": len(self.kept), "detections.out": int(self.kept.sum()),
                 "detections.invalid": int((~self.frame.valid).sum())}
 
@@ -432,6 +433,7 @@ class LmdProcessor:
         self.models = models
         self.min_confidence = float(min_confidence)
         self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
+        self._padding = PaddingNote()
         self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
         #: for whoever builds the buffer (process_bag: one per bag)
         self.transform_tolerance = float(transform_tolerance)
@@ -501,7 +503,8 @@ class LmdProcessor:
         if mismatch:
             issues["frame_id"] = mismatch
         return LmdOutputs(frame, conf, iou, kept, det_msg, quality, mk, issues,
-                          [self.intensity.note] if self.intensity.note else [],
+                          ([self.intensity.note] if self.intensity.note else [])
+                          + self._padding(frame.n_padding, frame.points_in),
                           {"intensity_scale": self.intensity.decided})
 
     def markers(self, frame: LmdFrame, conf, iou, kept):

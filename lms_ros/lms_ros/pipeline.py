@@ -95,7 +95,7 @@ from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
-from lidar_quality_core.pointcloud import (CloudFormatError, check_xyz_fields,
+from lidar_quality_core.pointcloud import (CloudFormatError, PaddingNote, check_xyz_fields,
                                             cloud_to_structured, finite_mask, pack_cloud,
                                             set_cloud_data, valid_points)
 from lidar_quality_core.lms import beams, segment_metrics
@@ -708,6 +708,7 @@ class LmsProcessor:
         self.settings = settings
         self.models = models
         self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
+        self._padding = PaddingNote()
         #: per-beam elevations estimated from the clouds, kept for the node's lifetime
         self.beam_table = beams.BeamTable(MAX_CHANNELS)
         from lidar_quality_msgs.msg import SegmentQuality, SegmentQualityArray
@@ -764,7 +765,8 @@ class LmsProcessor:
             issues["frame_id"] = (f"input/points frame_id {points_msg.header.frame_id!r} != "
                                   f"input/probabilities {probabilities_msg.header.frame_id!r}")
         return LmsOutputs(inp, res, conf, iou, cloud, segs, mk, issues, frozenset(errors), acc,
-                          [self.intensity.note] if self.intensity.note else [],
+                          ([self.intensity.note] if self.intensity.note else [])
+                          + self._padding(inp.n_padding, len(inp)),
                           self.intensity.decided)
 
     @staticmethod

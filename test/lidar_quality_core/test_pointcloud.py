@@ -782,3 +782,13 @@ def test_valid_points_of_an_organized_cloud():
     assert (msg.height, msg.width) == (4, 8)
     xyz = np.stack([cloud_to_structured(msg)[k].reshape(-1) for k in "xyz"], 1)
     assert pc.valid_points(xyz).sum() == 16
+
+
+def test_padding_note_said_once_per_stream():
+    from lidar_quality_core.pointcloud import PaddingNote
+
+    note = PaddingNote()
+    assert note(0, 100) == []                       # nothing to say yet
+    first = note(30, 100)
+    assert len(first) == 1 and "30 of 100" in first[0] and "points.padding" in first[0]
+    assert note(30, 100) == [] and PaddingNote()(5, 10, "input/cloud")[0].startswith("input/cloud")

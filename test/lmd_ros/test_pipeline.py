@@ -591,4 +591,12 @@ def test_padding_points_are_left_out_and_counted(threshold_models):
     out = LmdProcessor(s, models).process(padded, copy.deepcopy(dets), copy.deepcopy(props))
     np.testing.assert_array_equal(out.frame.features, ref.frame.features)
     assert out.counts["points.in"] == len(pts) and out.counts["points.padding"] == 5000
-    assert out.counts["points.invalid"] == 1 and ref.counts["points.padding"] == 0
+    # invalid as LMS counts it: every point left out (NaN or padding), of which padding
+    assert out.counts["points.invalid"] == 5001 and ref.counts["points.padding"] == 0
+    # said once per stream (a log line: padding is right, not a fault), never for none
+    proc = LmdProcessor(s, models)
+    first = proc.process(padded, copy.deepcopy(dets), copy.deepcopy(props))
+    assert any("5000 of 25001" in n and "points.padding" in n for n in first.notes)
+    assert not any("padding" in n for n in proc.process(
+        padded, copy.deepcopy(dets), copy.deepcopy(props)).notes)
+    assert not any("padding" in n for n in ref.notes)

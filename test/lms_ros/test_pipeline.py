@@ -534,6 +534,8 @@ def test_padding_points_are_excluded_and_counted(frames, models):
     assert c["points.no_segment"] == c["points.invalid"] + c["points.unprojected"] + \
         c["points.occluded"] == int((seg < 0).sum())
     assert "unprojected" not in out.issues
+    # padding is said once (a log line), never warned: it is right to leave it out
+    assert any(f"{len(pad)} of {len(xyz)}" in n and "points.padding" in n for n in out.notes)
 
 
 @pytest.mark.parametrize("share, level", [(0.10, "warn"), (0.40, "error")])
