@@ -176,6 +176,7 @@ class _Stats:
         self.n_late: dict[str, int] = defaultdict(int)
         self.publish_s: dict[str, deque] = defaultdict(lambda: deque(maxlen=_SAMPLES))
         self.first_due = self.last_due = self.last_done = None
+        self.cpu_first = self.cpu_last = 0.0   # process CPU time at the first / last publish
         self.passes = 0
         self.lock = threading.Lock()  # summary() may be called during playback
 
@@ -188,8 +189,10 @@ class _Stats:
             self.late_max[topic] = max(self.late_max[topic], late)
             self.n_late[topic] += late > LATE_S
             self.publish_s[topic].append(done - start)
+            self.cpu_last = time.process_time()
             if self.first_due is None:
                 self.first_due = due
+                self.cpu_first = self.cpu_last
             self.last_due, self.last_done = due, done
 
 
@@ -441,7 +444,9 @@ class BagPlayer(Node):
             mb_per_s=round(total_bytes / 1e6 / actual, 1) if actual > 0 else 0.0,
             late_ms_p50=_ms(every, 50), late_ms_p99=_ms(every, 99),
             late_ms_max=round(max(s.late_max.values(), default=0.0) * 1e3, 2),
-            late_over_10ms=sum(s.n_late.values()), topics=topics)
+            late_over_10ms=sum(s.n_late.values()),
+            # the whole process (reading, publishing, /clock) from the first to the last publish
+            cpu_s=round(s.cpu_last - s.cpu_first, 3), topics=topics)
 
 
 def format_summary(summary: dict) -> str:

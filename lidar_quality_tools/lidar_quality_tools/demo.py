@@ -142,11 +142,27 @@ def latencies(published: dict, inputs: list[str], received: dict[int, int]) -> n
                      if all(s in d for d in ins)])
 
 
+def cpu_per_frame(cpu0: dict, cpu1: dict, player: dict, frames: int) -> dict:
+    """Process CPU time (all threads, user + system) per played frame [ms]: the player (first
+    to last publication), each node and the recorder (this process: recording, /diagnostics)
+    from the start of the replay to the last output; ``total`` of them all."""
+    if not frames:
+        return {}
+    out = {"player": player.get("cpu_s")}
+    for n in cpu0:
+        a, b = cpu0[n], cpu1.get(n)
+        out[n] = None if a is None or b is None else b - a
+    out = {n: (round(v / frames * 1e3, 1) if v is not None else None) for n, v in out.items()}
+    out["total"] = round(sum(v for v in out.values() if v is not None), 1)
+    return out
+
+
 def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
     """Steps 2-3: start the nodes, replay ``bag``, record. Returns the live figures."""
     from diagnostic_msgs.msg import DiagnosticArray
     from lidar_quality_ros.bag_io import bag_info
-    from lidar_quality_tools.load_test import NODES, DiagnosticsLog, node_command, percentile
+    from lidar_quality_tools.load_test import (NODES, DiagnosticsLog, cpu_seconds, node_command,
+                                                  percentile)
     from lidar_quality_ros.perception_bag import head_count
     from lidar_quality_ros.qos import output_qos
     from lidar_quality_ros.testing import RosHarness
@@ -199,6 +215,8 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
             say(f"demo: replaying {bag} ({info.topics['/lidar/points'].count} frames, "
                 f"{len(played)} topics) at rate {rate:g} with /clock")
             t0 = time.monotonic()
+            cpu0 = {n: cpu_seconds(p.pid) for n, p in procs.items()}
+            cpu0["recorder"] = time.process_time()
             with open(logs / "bag_player.log", "w") as fh:
                 player = ros.spawn(argv, stdout=fh, stderr=subprocess.STDOUT)
             duration = (info.end_ns - info.start_ns) / 1e9
@@ -219,6 +237,8 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
                 if n != last:
                     last, quiet = n, time.monotonic()
                 time.sleep(0.2)
+            cpu1 = {n: cpu_seconds(p.pid) for n, p in procs.items()}
+            cpu1["recorder"] = time.process_time()
             time.sleep(1.5)  # one more diagnostics period
             diag_values = {n: diag.values(n) for n in wire}
         finally:
@@ -234,6 +254,8 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
                     codes[n] = "killed (no exit 30 s after SIGINT)"
             rec.close()
     published = {t: v["count"] for t, v in live["player"]["topics"].items()}
+    live["cpu_ms_per_frame"] = cpu_per_frame(cpu0, cpu1, live["player"],
+                                             published.get("/lidar/points", 0))
     pub_times = publish_times(bag, logs / "published.txt")
     # the period the player keeps: the clouds' stamps at ``rate`` (its publish times
     # jitter with the load, a few frames' median among them)
@@ -480,6 +502,12 @@ def print_summary(s: dict) -> None:
     print(f"\ndemo: {s['frames']} frames of {s['bag']}; report {s['report']}")
     for line in s["verdict"]["lines"] + [s["verdict"]["pictures"]]:
         print(f"demo: {line}")
+    cpu = s.get("cpu_ms_per_frame") or {}
+    if cpu:
+        print("demo: CPU per frame [ms]: " + ", ".join(
+            f"{n} {v if v is not None else '-'}" for n, v in cpu.items() if n != "total")
+            + f"; total {cpu['total']} ({os.cpu_count()} cores: "
+            f"{os.cpu_count() * (s['input_period_ms'] or 0):.0f} ms per input period)")
     print(f"{'node':5s} {'in':>5s} {'out':>5s} {'drop':>5s} {'p50 ms':>7s} {'p99 ms':>7s} "
           f"{'steady':>7s} {'AUROC':>6s} {'(base)':>7s} {'ECE':>6s} {'(base)':>7s} {'R2':>6s}  baseline")
 
@@ -542,6 +570,7 @@ def main(argv=None) -> int:
                "player": {k: live["player"][k] for k in ("achieved_rate", "late_ms_p99",
                                                          "wall_s")},
                "input_period_ms": live["input_period_ms"],
+               "cpu_ms_per_frame": live["cpu_ms_per_frame"],
                # frames in / out as played and recorded (the evaluation's: frames_scored)
                "nodes": {n: {**q[n], "frames_scored": q[n]["frames_out"],
                              **{k: v for k, v in live["nodes"][n].items()

@@ -179,7 +179,7 @@ def _lms(p: dict, topics: dict) -> Runner:
     from lms_ros.pipeline import LmsProcessor
 
     c = node_config("lms", p)
-    proc = LmsProcessor(c.settings, _models("lms", c))
+    proc = LmsProcessor(c.settings, _models("lms", c), all_fields=c.output_all_fields)
     # the segmentation cloud carries points and probabilities; separately: /lidar/points
     keys = ("points", "segmentation") if c.separate_probabilities else ("segmentation",)
     return Runner("lms", {k: topic_of(k, topics) for k in keys}, keys,

@@ -12,12 +12,13 @@ Inputs (relative names, sensor-data QoS):
 
 Outputs (header copied from ``input/points``):
 
-* ``output/points``: the input points, same count, order and layout, with fields
-  ``x, y, z, intensity, label`` (uint16 predicted class), ``segment`` (int32, -1: none),
+* ``output/points``: the input points, same count, order, height and width, with fields
+  ``x, y, z, label`` (uint16 predicted class), ``segment`` (int32, -1: none),
   ``confidence`` (float32, P(segment is a true positive, IoU_adj > 0)) and
   ``predicted_iou`` (float32); NaN for points without a segment (non-finite or (0, 0, 0),
   outside the image, lost their pixel to a nearer point, unusable probabilities) or in a
-  segment with fewer than ``min_segment_points`` projected points;
+  segment with fewer than ``min_segment_points`` projected points; with
+  ``output_all_fields`` every other field of ``input/points`` too, as received;
 * ``output/segments``: SegmentQualityArray, every segment in id order (``segment`` of
   ``output/points`` is its id), excluded ones with NaN confidence;
 * ``output/markers``: centroids of the scored segments coloured by confidence
@@ -55,7 +56,8 @@ class LmsNode(QualityNode):
         self.separate = p.separate_probabilities
         self.settings = p.settings.resolved()
         self.models = load_models(p, warn=self.get_logger().warning)
-        self.processor = LmsProcessor(self.settings, self.models)
+        self.processor = LmsProcessor(self.settings, self.models,
+                                      all_fields=p.output_all_fields)
 
         self.create_output(PointCloud2, "output/points", output_qos(5))
         self.create_output(SegmentQualityArray, "output/segments")

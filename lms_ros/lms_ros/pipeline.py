@@ -67,7 +67,7 @@ Points without a pixel
   published either way.
 Outputs (:class:`LmsProcessor`)
   ``output/points``: the input points in the input order and layout (height / width),
-  fields ``x, y, z, intensity`` (float32; intensity 0 when the input has none),
+  fields :data:`OUTPUT_FIELDS`: ``x, y, z`` (float32, as received),
   ``label`` (uint16 predicted class = argmax, lowest class on ties, for every point with
   usable probabilities, with or without a pixel or a segment; :data:`NO_LABEL` for
   unusable probabilities), ``segment`` (int32, -1: no segment: invalid point (non-finite,
@@ -75,7 +75,9 @@ Outputs (:class:`LmsProcessor`)
   around it),
   ``confidence`` (float32, P(IoU_adj > 0) of its segment) and ``predicted_iou``
   (float32, predicted IoU_adj), both NaN for points without a segment or in a segment
-  excluded from the meta models (SP < ``min_segment_points``).
+  excluded from the meta models (SP < ``min_segment_points``). With ``all_fields``
+  (``output_all_fields``) every other field of ``input/points`` comes first, as received
+  (intensity, ring, probabilities, ...).
   ``output/segments``: every segment (kept or not) in id order: id, class, point count,
   SP, confidence and predicted IoU (NaN when excluded).
   ``output/markers`` (optional): centroids of the kept segments coloured by confidence.
@@ -119,9 +121,10 @@ CLASS_NAMES: tuple[str, ...] = (
 NO_LABEL = 65535
 INTENSITY_FIELDS = ("intensity", "reflectance", "i")
 
-#: Fields of ``output/points`` in order (name, dtype).
+#: Fields of ``output/points`` in order (name, dtype) (``all_fields``: the input's before
+#: the last four).
 OUTPUT_FIELDS = (("x", np.float32), ("y", np.float32), ("z", np.float32),
-                 ("intensity", np.float32), ("label", np.uint16), ("segment", np.int32),
+                 ("label", np.uint16), ("segment", np.int32),
                  ("confidence", np.float32), ("predicted_iou", np.float32))
 
 
@@ -222,7 +225,8 @@ class LmsSettings:
         "does not fit the sensor (set sensor, or channels / width / the field of view).",
         min_value=0.0, max_value=1.0)
     intensity_scale: str = intensity_scale_param(
-        "the intensity metrics (output/points keeps the input's values)")
+        "the intensity metrics (output/points with output_all_fields keeps the input's "
+        "values)")
 
     def preset(self) -> beams.SensorPreset | None:
         """The selected sensor preset, or None; ``ValueError`` for an unknown name."""
@@ -361,6 +365,8 @@ class LmsInput:
     n_padding: int = 0                # finite points at exactly (0, 0, 0): organized-cloud
                                       # padding (part of n_invalid_points)
     ring_field: str | None = None     # the ring field found in the cloud
+    cloud: np.ndarray | None = field(repr=False, default=None)   # input/points as decoded
+                                      # (structured, (N,) or (H, W))
 
     def __len__(self) -> int:
         return len(self.xyz)
@@ -520,7 +526,8 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None,
     return LmsInput(xyz=xyz, intensity=intensity, ring=ring, probs=probs_cm.T,
                     n_renormalized=n_renorm, n_invalid_points=int(N - np.count_nonzero(valid)),
                     valid=valid, n_bad_probabilities=n_bad, quantized=quantized, shape=shape,
-                    ring_issue=ring_issue, n_padding=n_padding, ring_field=ring_name)
+                    ring_issue=ring_issue, n_padding=n_padding, ring_field=ring_name,
+                    cloud=arr)
 
 
 def frame_metrics(inp: LmsInput, settings: LmsSettings,
@@ -560,6 +567,10 @@ class LmsParameters:
     separate_probabilities: bool = param(
         False, "Take the probabilities from a second cloud on input/probabilities (same "
         "points, same order, matched by stamp) instead of fields of input/points.")
+    output_all_fields: bool = param(
+        False, "output/points carries every field of input/points (probabilities included) "
+        "besides the four results; false: x, y, z and the results only (a viewer's needs, "
+        "about a third of the bytes of a 14-class float32 input).")
     publish_markers: bool = param(
         True, "Publish output/markers (segment centroids coloured by confidence; built only "
         "while someone subscribes).")
@@ -694,10 +705,11 @@ def point_accounting(inp: LmsInput, res: SegmentResult) -> dict:
 class LmsProcessor:
     """The node's frame work without ROS: decode, metrics, meta models, output messages.
 
-    ``models``: a ``MetaModels`` loaded with ``settings.metric_names()``.
+    ``models``: a ``MetaModels`` loaded with ``settings.metric_names()``; ``all_fields``:
+    ``output/points`` repeats every input field (``output_all_fields``).
     """
 
-    def __init__(self, settings: LmsSettings, models):
+    def __init__(self, settings: LmsSettings, models, *, all_fields: bool = False):
         settings.validate()
         settings = settings.resolved()
         if tuple(models.feature_names) != settings.metric_names():
@@ -707,6 +719,7 @@ class LmsProcessor:
                 "models were trained for another class map")
         self.settings = settings
         self.models = models
+        self.all_fields = all_fields
         self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
         self._padding = PaddingNote()
         #: per-beam elevations estimated from the clouds, kept for the node's lifetime
@@ -729,7 +742,7 @@ class LmsProcessor:
         kid = res.kept_ids
         conf[kid], iou[kid] = conf_k, iou_k
         header = points_msg.header
-        cloud = self.output_cloud(header, inp, res, conf, iou)
+        cloud = self.output_cloud(header, inp, res, conf, iou, all_fields=self.all_fields)
         segs = self.segment_array(header, res, conf, iou)
         mk = self.markers(header, inp, res, conf) if markers else None
         issues = {}
@@ -770,20 +783,26 @@ class LmsProcessor:
                           self.intensity.decided)
 
     @staticmethod
-    def output_cloud(header, inp: LmsInput, res: SegmentResult, conf, iou):
-        """``output/points`` (see the module doc), in the input's layout."""
+    def output_cloud(header, inp: LmsInput, res: SegmentResult, conf, iou, *,
+                     all_fields: bool = False):
+        """``output/points`` (see the module doc): x, y, z and the results, or with
+        ``all_fields`` every field of ``inp.cloud`` (a field named like a result replaced
+        by it) and the results; the input's height and width."""
         from sensor_msgs.msg import PointCloud2, PointField
 
         N = len(inp)
         label = res.point_class.astype(np.uint16)
         if inp.n_bad_probabilities:
             label[inp.probs.sum(axis=1) == 0] = NO_LABEL   # decode zeroed exactly those
-        cols = {"x": inp.xyz[:, 0], "y": inp.xyz[:, 1], "z": inp.xyz[:, 2],
-                "intensity": (np.zeros(N, np.float32) if inp.intensity is None
-                              else inp.intensity),
-                "label": label, "segment": res.point_segment,
-                "confidence": _per_point(res, conf), "predicted_iou": _per_point(res, iou)}
-        packed = pack_cloud(cols)
+        results = {"label": label, "segment": res.point_segment,
+                   "confidence": _per_point(res, conf), "predicted_iou": _per_point(res, iou)}
+        if all_fields and inp.cloud is not None:
+            flat = inp.cloud.reshape(-1)
+            cols = {nm: flat[nm].reshape(N, -1) if flat.dtype[nm].shape else flat[nm]
+                    for nm in flat.dtype.names if nm not in results}
+        else:
+            cols = {"x": inp.xyz[:, 0], "y": inp.xyz[:, 1], "z": inp.xyz[:, 2]}
+        packed = pack_cloud({**cols, **results})
         h, w = inp.shape if len(inp.shape) == 2 and inp.shape[0] * inp.shape[1] == N \
             else (1, N)
         msg = PointCloud2(header=header, height=h, width=w,

@@ -26,8 +26,10 @@ class SegmenterNode(CloudNode):
         path = declare(self, "model_path", "",
                        "Segmenter model file (model store); empty: the shipped "
                        "models/reference segmenter.", read_only=True)
-        self.quantize = declare(self, "quantize_probabilities", False,
-                                "Publish probabilities as uint8 (p * 255) instead of float32.")
+        self.quantize = declare(self, "quantize_probabilities", True,
+                                "Publish probabilities as uint8 (round(p * 255): a quarter of "
+                                "the bytes, no measurable loss of the LMS estimates) instead "
+                                "of float32.")
         declare(self, "class_names", list(CLASS_NAMES),
                 "Class of each probability field, in field order (fixed by the model).",
                 read_only=True)

@@ -34,7 +34,7 @@ PARAMS = ("classifier_path", "regressor_path", "class_names", "channels", "fov_u
           "diagnostics_period",
           "diagnostics_window", "drop_warn_fraction", "drop_error_fraction", "input_timeout",
           "input_error_timeout")
-OUT_FIELDS = ["x", "y", "z", "intensity", "label", "segment", "confidence", "predicted_iou"]
+OUT_FIELDS = ["x", "y", "z", "label", "segment", "confidence", "predicted_iou"]
 
 
 @pytest.fixture(scope="session")

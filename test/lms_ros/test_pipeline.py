@@ -3,9 +3,10 @@ layouts), probability checks, frame metrics and the node's frame work with real 
 import numpy as np
 import pytest
 from lidar_quality_core import meta_model
-from lidar_quality_core.pointcloud import CloudFormatError, create_cloud, read_fields
-from lms_ros.pipeline import (CLASS_NAMES, NO_LABEL, LmsProcessor, LmsSettings, decode,
-                              default_model_paths, frame_metrics)
+from lidar_quality_core.pointcloud import (CloudFormatError, cloud_to_structured, create_cloud,
+                                          read_fields)
+from lms_ros.pipeline import (CLASS_NAMES, NO_LABEL, OUTPUT_FIELDS, LmsProcessor, LmsSettings,
+                              decode, default_model_paths, frame_metrics)
 from lidar_quality_core.lms.segment_metrics import compute_segments, to_points
 from lms_scans import COLS, cloud, frame_cloud, scans, train_models
 from lms_scans import frame_probs as noisy_probs
@@ -342,10 +343,9 @@ def test_processor_outputs(frames, models):
     # output/points: same points, same order, the per-point values of their segment
     pc = out.points
     assert pc.header == msg.header and pc.width == len(xyz) and pc.height == 1
-    assert [fl.name for fl in pc.fields] == ["x", "y", "z", "intensity", "label", "segment",
-                                             "confidence", "predicted_iou"]
-    got = read_fields(pc, ["x", "y", "z", "intensity"])
-    np.testing.assert_array_equal(got, np.c_[xyz, f.intensity.astype(np.float32)])
+    assert [fl.name for fl in pc.fields] == [nm for nm, _ in OUTPUT_FIELDS] == [
+        "x", "y", "z", "label", "segment", "confidence", "predicted_iou"]
+    np.testing.assert_array_equal(read_fields(pc, ["x", "y", "z"]), xyz)
     seg = read_fields(pc, ["segment"], dtype=np.int64)[:, 0]
     np.testing.assert_array_equal(seg, res.point_segment)
     assert seg[5] == -1
@@ -374,6 +374,26 @@ def test_processor_outputs(frames, models):
     c0 = xyz[seg == k0].astype(np.float64).mean(axis=0)
     np.testing.assert_allclose([m.points[0].x, m.points[0].y, m.points[0].z], c0, rtol=1e-6)
     assert out.issues == {}
+
+
+def test_output_all_fields_repeats_the_input_cloud(frames, models):
+    """output_all_fields: every input field as received (probabilities, ring, intensity),
+    then the four results, equal to those of the default output; same height and width."""
+    f = frames[1]
+    p = noisy_probs(f, 9)
+    msg = cloud(f.xyz, p, intensity=f.intensity, ring=f.ring, quantize=True, sec=42)
+    s = _settings()
+    lean = LmsProcessor(s, models).process(msg).points
+    full = LmsProcessor(s, models, all_fields=True).process(msg).points
+    results = ["label", "segment", "confidence", "predicted_iou"]
+    assert [fl.name for fl in full.fields] == [fl.name for fl in msg.fields] + results
+    assert (full.height, full.width) == (msg.height, msg.width)
+    assert full.point_step > lean.point_step == 26
+    src, got = cloud_to_structured(msg), cloud_to_structured(full)
+    for fl in msg.fields:
+        np.testing.assert_array_equal(got[fl.name], src[fl.name])
+    for nm in results:
+        np.testing.assert_array_equal(got[nm], cloud_to_structured(lean)[nm])
 
 
 def test_processor_bad_probabilities_and_issues(frames, models):
@@ -639,13 +659,13 @@ def test_intensity_scale_auto_reads_both_scales_alike(frames, models):
     assert 0.0 <= f.intensity.min() and f.intensity.max() <= 1.0
     inten255 = (np.asarray(f.intensity, np.float32) * 255).astype(np.float32)
     ref = LmsProcessor(s, models).process(cloud(xyz, p, intensity=f.intensity, ring=f.ring))
-    proc = LmsProcessor(s, models)
+    proc = LmsProcessor(s, models, all_fields=True)
     out = proc.process(cloud(xyz, p, intensity=inten255, ring=f.ring))
     np.testing.assert_allclose(out.result.features, ref.result.features, rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(out.confidence, ref.confidence, atol=1e-5)
     assert out.values["intensity_scale"] == "byte" and "0..255" in out.notes[0]
     assert ref.values["intensity_scale"] == "unit"
-    # the output cloud keeps the input's own intensity
+    # the output cloud (all fields) keeps the input's own intensity
     np.testing.assert_array_equal(read_fields(out.points, ["intensity"])[:, 0], inten255)
     raw = LmsProcessor(replace(s, intensity_scale="unit"), models).process(
         cloud(xyz, p, intensity=inten255, ring=f.ring))

@@ -15,6 +15,7 @@ from lidar_sim.cli import main as sim_main
 
 from reference_perception.cli import Perception, main
 from reference_perception.messages import probability_field
+from sensor_msgs.msg import PointField
 
 
 @pytest.fixture(scope="module")
@@ -44,8 +45,11 @@ def test_perception_bag(sim_dir, tmp_path):
         seg = same["/perception/segmentation"].decode()
         assert seg.header == cloud.header and seg.width == cloud.width
         np.testing.assert_array_equal(xyz_intensity(seg)[0], xyz_intensity(cloud)[0])
-        p = read_fields(seg, [probability_field(n) for n in CLASS_NAMES])
-        np.testing.assert_allclose(p.sum(axis=1), 1.0, atol=1e-4)
+        # uint8 probability fields by default: round(p * 255), each off by <= half a step
+        names = [probability_field(n) for n in CLASS_NAMES]
+        assert {f.datatype for f in seg.fields if f.name in names} == {PointField.UINT8}
+        p = read_fields(seg, names) / 255.0
+        np.testing.assert_allclose(p.sum(axis=1), 1.0, atol=len(names) * 0.5 / 255 + 1e-6)
         dets = detections_to_arrays(same["/perception/detections"].decode())
         props = detections_to_arrays(same["/perception/proposals"].decode())
         assert set(dets.ids) <= set(props.ids) and len(dets) > 0

@@ -47,6 +47,8 @@ def test_bag_rows_are_the_metrics_of_the_recorded_arrays(data, tmp_path):
             seg = cloud_to_structured(f.segmentation)
             xyz = np.stack([pts["x"], pts["y"], pts["z"]], axis=1)
             probs = np.stack([seg[n] for n in s.field_names()], axis=1)
+            if probs.dtype == np.uint8:   # the perception bags' default: round(p * 255)
+                probs = probs.astype(np.float32) / np.float32(255)
             X, iou, adj, cls = _direct_rows(xyz, probs, cloud_to_structured(f.points_gt)["label"],
                                             ring=pts["ring"].astype(np.int32),
                                             intensity=pts["intensity"], settings=s)
