@@ -81,6 +81,7 @@ def test_plays_every_topic_in_order_with_original_contents(ros, tmp_path, storag
     summary = player.summary()
     assert {t: v["count"] for t, v in summary["topics"].items()} == {"/pts": 10, "/dets": 10, "/var": 5}
     assert summary["messages"] == 25 and summary["passes"] == 1
+    assert summary["cpu_s"] > 0      # the process's CPU time from the first to the last publish
 
 
 def test_clock_follows_log_times_and_recorded_clock_is_not_replayed(ros, tmp_path):

@@ -61,6 +61,12 @@ def test_demo_end_to_end(bags, tmp_path):
         assert v["exit_code"] == 0 and v["mismatched"] == 0
         assert v["latency_ms_p50"] > 0 and v["n"] > 0
         assert node in r.stdout
+    # every process's CPU per frame, and their total, measured and printed
+    cpu = s["cpu_ms_per_frame"]
+    assert set(cpu) == {"player", "lmd", "lms", "mimo", "recorder", "total"}
+    assert all(v > 0 for v in cpu.values()), cpu
+    assert abs(cpu["total"] - sum(v for n, v in cpu.items() if n != "total")) < 0.5
+    assert any(x.startswith("demo: CPU per frame [ms]: player ") for x in head), head
     # every main output recorded once per processed frame, with the input's stamps
     info = bag_info(out / "outputs")
     for node, (_, main) in NODES.items():
