@@ -116,10 +116,13 @@ def test_rate_scales_playback_time(ros, tmp_path):
     times = cols["/pts"].receive_times
     span = times[-1] - times[0]
     # never early: at least half the recorded span (minus the first message's lateness);
-    # loose upper bound (shared machine)
-    assert 0.45 * recorded < span < 0.8 * recorded, span
-    assert 0.45 * recorded < player.summary()["wall_s"] < 0.8 * recorded
-    assert 1.6 < player.summary()["achieved_rate"] < 2.05
+    # at most half of it plus the lateness the player itself reports (a stall of the
+    # machine or of this process shows there, not as a wrong schedule), delivery 0.1 s
+    summary = player.summary()
+    late = summary["late_ms_max"] / 1e3
+    assert 0.45 * recorded < span < 0.5 * recorded + late + 0.1, (span, late)
+    assert 0.45 * recorded < summary["wall_s"] < 0.5 * recorded + late + 0.1, (summary, late)
+    assert 2.0 * 0.5 * recorded / (0.5 * recorded + late + 0.1) < summary["achieved_rate"] < 2.05
 
 
 def test_remapping_topic_selection_and_exclusion(ros, tmp_path):
