@@ -796,10 +796,9 @@ class LmsProcessor:
             label[inp.probs.sum(axis=1) == 0] = NO_LABEL   # decode zeroed exactly those
         results = {"label": label, "segment": res.point_segment,
                    "confidence": _per_point(res, conf), "predicted_iou": _per_point(res, iou)}
-        if all_fields and inp.cloud is not None:
+        if all_fields:   # (N, count) columns for fields of count > 1
             flat = inp.cloud.reshape(-1)
-            cols = {nm: flat[nm].reshape(N, -1) if flat.dtype[nm].shape else flat[nm]
-                    for nm in flat.dtype.names if nm not in results}
+            cols = {nm: flat[nm] for nm in flat.dtype.names if nm not in results}
         else:
             cols = {"x": inp.xyz[:, 0], "y": inp.xyz[:, 1], "z": inp.xyz[:, 2]}
         packed = pack_cloud({**cols, **results})

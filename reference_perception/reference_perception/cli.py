@@ -39,6 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .messages import QUANTIZE_DEFAULT
+
 PROB_TOPIC, DET_TOPIC, PROP_TOPIC = "segmentation", "detections", "proposals"
 POINTS_TOPIC = "/lidar/points"
 
@@ -112,7 +114,7 @@ def _write_kitti(directory: Path, frame_id: str, det, calib) -> int:
 
 def process_bag(src: Path, dst: Path, perception: Perception, *, points_topic: str | None = None,
                 prefix: str = "/perception", topics: dict | None = None, storage: str = "mcap",
-                quantize: bool = True, kitti_results: Path | None = None, quiet: bool = False,
+                quantize: bool = QUANTIZE_DEFAULT, kitti_results: Path | None = None, quiet: bool = False,
                 overwrite: bool = False) -> dict:
     """Copy ``src`` into ``dst`` adding the perception outputs of every cloud.
 
@@ -183,7 +185,7 @@ def process_bag(src: Path, dst: Path, perception: Perception, *, points_topic: s
 
 
 def process_split(split: str, out: Path, perception: Perception, *, storage: str = "mcap",
-                  quantize: bool = True, sequences=None, quiet: bool = False) -> list[Path]:
+                  quantize: bool = QUANTIZE_DEFAULT, sequences=None, quiet: bool = False) -> list[Path]:
     """Simulate a split's sequences and write one perception bag per sequence."""
     from lidar_sim import classes
     from lidar_sim.bag import SimBagWriter
@@ -298,10 +300,11 @@ def main(argv=None) -> int:
     sub = ap.add_subparsers(dest="cmd", required=True)
 
     def add_probability_option(p):
-        p.add_argument("--probabilities", choices=("uint8", "float32"), default="uint8",
+        p.add_argument("--probabilities", choices=("uint8", "float32"),
+                       default="uint8" if QUANTIZE_DEFAULT else "float32",
                        help="type of the segmentation's probability fields (default uint8: "
-                       "round(p * 255), a quarter of the bytes of float32 at no measurable "
-                       "loss of the LMS estimates, README 'Performance')")
+                       "round(p * 255), a quarter of the bytes of float32; its effect on the "
+                       "LMS estimates: README 'Benchmarks')")
 
     def common(p, heads=True):
         p.add_argument("--models", type=Path, default=None, help="model directory (default: shipped)")
@@ -370,7 +373,8 @@ def main(argv=None) -> int:
               f"-> {a.out}")
     elif a.cmd == "split":
         for path in process_split(a.split, a.out, perception, storage=a.storage,
-                                  quantize=a.probabilities == "uint8", sequences=a.sequences, quiet=a.quiet):
+                                  quantize=a.probabilities == "uint8", sequences=a.sequences,
+                                  quiet=a.quiet):
             print(path)
     else:
         n = process_kitti(a.root, a.out, perception, split=a.split, quiet=a.quiet)

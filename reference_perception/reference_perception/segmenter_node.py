@@ -16,7 +16,7 @@ from lidar_sim.classes import CLASS_NAMES
 from sensor_msgs.msg import PointCloud2
 
 from .cloud_node import CloudNode
-from .messages import probability_cloud
+from .messages import QUANTIZE_DEFAULT, probability_cloud
 from .segmenter import DEFAULT_MODEL_PATH, ReferenceSegmenter
 
 
@@ -26,10 +26,9 @@ class SegmenterNode(CloudNode):
         path = declare(self, "model_path", "",
                        "Segmenter model file (model store); empty: the shipped "
                        "models/reference segmenter.", read_only=True)
-        self.quantize = declare(self, "quantize_probabilities", True,
+        self.quantize = declare(self, "quantize_probabilities", QUANTIZE_DEFAULT,
                                 "Publish probabilities as uint8 (round(p * 255): a quarter of "
-                                "the bytes, no measurable loss of the LMS estimates) instead "
-                                "of float32.")
+                                "the bytes) instead of float32.")
         declare(self, "class_names", list(CLASS_NAMES),
                 "Class of each probability field, in field order (fixed by the model).",
                 read_only=True)
