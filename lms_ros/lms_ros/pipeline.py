@@ -108,7 +108,7 @@ __all__ = ["CLASS_NAMES", "NO_LABEL", "INTENSITY_FIELDS", "MAX_CHANNELS", "MAX_W
            "MAX_PIXELS", "LmsSettings", "LmsInput",
            "decode", "frame_metrics", "default_model_paths", "LmsParameters", "load_models",
            "probability_field",
-           "LmsOutputs", "LmsProcessor", "OUTPUT_FIELDS", "geometry_mismatch",
+           "LmsOutputs", "LmsProcessor", "OUTPUT_FIELDS", "RESULT_FIELDS", "geometry_mismatch",
            "point_accounting", "sensor_presets", "shipped_sensors_file"]
 
 #: The reference segmenter's classes (``lidar_sim.classes.CLASS_NAMES``, copied: this
@@ -126,6 +126,8 @@ INTENSITY_FIELDS = ("intensity", "reflectance", "i")
 OUTPUT_FIELDS = (("x", np.float32), ("y", np.float32), ("z", np.float32),
                  ("label", np.uint16), ("segment", np.int32),
                  ("confidence", np.float32), ("predicted_iou", np.float32))
+#: The per-point results among them.
+RESULT_FIELDS = tuple(nm for nm, _ in OUTPUT_FIELDS[3:])
 
 
 #: Range image bounds of :meth:`LmsSettings.validate` (see ``_LIMIT_WHY``).
@@ -757,6 +759,12 @@ class LmsProcessor:
                 f"{NO_LABEL}, NaN confidence")
         if inp.ring_issue:
             issues["ring"] = inp.ring_issue
+        clash = [nm for nm in RESULT_FIELDS if nm in inp.cloud.dtype.names] \
+            if self.all_fields else []
+        if clash:
+            issues["replaced_fields"] = (
+                f"input/points field(s) {', '.join(clash)} replaced in output/points by the "
+                "results of the same name (output_all_fields)")
         acc = point_accounting(inp, res)
         errors = set()
         ratio = acc["no_pixel_ratio"]

@@ -5,8 +5,8 @@ import pytest
 from lidar_quality_core import meta_model
 from lidar_quality_core.pointcloud import (CloudFormatError, cloud_to_structured, create_cloud,
                                           read_fields)
-from lms_ros.pipeline import (CLASS_NAMES, NO_LABEL, OUTPUT_FIELDS, LmsProcessor, LmsSettings,
-                              decode, default_model_paths, frame_metrics)
+from lms_ros.pipeline import (CLASS_NAMES, NO_LABEL, OUTPUT_FIELDS, RESULT_FIELDS, LmsProcessor,
+                              LmsSettings, decode, default_model_paths, frame_metrics)
 from lidar_quality_core.lms.segment_metrics import compute_segments, to_points
 from lms_scans import COLS, cloud, frame_cloud, scans, train_models
 from lms_scans import frame_probs as noisy_probs
@@ -384,7 +384,9 @@ def test_output_all_fields_repeats_the_input_cloud(frames, models):
     msg = cloud(f.xyz, p, intensity=f.intensity, ring=f.ring, quantize=True, sec=42)
     s = _settings()
     lean = LmsProcessor(s, models).process(msg).points
-    full = LmsProcessor(s, models, all_fields=True).process(msg).points
+    out = LmsProcessor(s, models, all_fields=True).process(msg)
+    assert "replaced_fields" not in out.issues      # no input field is named like a result
+    full = out.points
     results = ["label", "segment", "confidence", "predicted_iou"]
     assert [fl.name for fl in full.fields] == [fl.name for fl in msg.fields] + results
     assert (full.height, full.width) == (msg.height, msg.width)
@@ -394,6 +396,24 @@ def test_output_all_fields_repeats_the_input_cloud(frames, models):
         np.testing.assert_array_equal(got[fl.name], src[fl.name])
     for nm in results:
         np.testing.assert_array_equal(got[nm], cloud_to_structured(lean)[nm])
+
+
+def test_output_all_fields_says_which_input_fields_the_results_replace(frames, models):
+    """An input field named like a result (a driver's 'label') is replaced in output/points
+    by the result: said as an issue (a throttled warning, /diagnostics WARN in the node)."""
+    f = frames[1]
+    p = noisy_probs(f, 9)
+    msg = cloud(f.xyz, p, intensity=f.intensity, ring=f.ring, sec=42,
+                extra={"label": np.full(len(f.xyz), 7, np.uint8)})
+    s = _settings()
+    out = LmsProcessor(s, models, all_fields=True).process(msg)
+    assert "label" in out.issues["replaced_fields"]
+    names = [fl.name for fl in out.points.fields]
+    assert names.count("label") == 1 and names[-4:] == list(RESULT_FIELDS)
+    np.testing.assert_array_equal(cloud_to_structured(out.points)["label"],
+                                  out.result.point_class.astype(np.uint16))
+    # the default output repeats no input field: nothing replaced, nothing said
+    assert "replaced_fields" not in LmsProcessor(s, models).process(msg).issues
 
 
 def test_processor_bad_probabilities_and_issues(frames, models):
