@@ -67,10 +67,11 @@ def test_a_required_input_that_never_arrives_is_named(ros, case):
     kind, params, sent, missing = MISSING[case]
     log = ros.collector(Log, "/rosout")
     node = ros.start(NODES[kind], parameters=params)
-    took = publish_until(ros, node, {t: (m, 0) for t, m in sent.items()},
-                         lambda: logged(log, node, missing))
+    # named while the other inputs flow (input_timeout 2 s, checked every second); no
+    # wall-clock limit on how soon: a stall of this shared machine is not the node's fault
+    publish_until(ros, node, {t: (m, 0) for t, m in sent.items()},
+                  lambda: logged(log, node, missing), timeout=15.0)
     assert logged(log, node, missing, "remap"), [m.msg for m in log.messages]
-    assert took < 5.0
     status = node.diag.status()
     assert status.level >= WARN and missing in status.message
 
