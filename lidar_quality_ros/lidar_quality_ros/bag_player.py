@@ -12,7 +12,8 @@ publishing message objects took ~135 ms on the 2-core machine, the raw bytes ~10
 A looping player's /clock jumps back to the bag start at each pass, as with rosbag2.
 
     bag_player BAG [--topics T ...] [--rate 2] [--loop] [--start-offset S] [--delay S]
-               [--remap /old:=/new ...] [--best-effort [PATTERN ...]] [--publish-log PATH]
+               [--remap /old:=/new ...] [--best-effort [PATTERN ...]] [--max-lateness S]
+               [--publish-log PATH]
                [--ros-args ...]
 
 In-process (tests, ``make demo``): ``ros.start(BagPlayer, parameters={"bag": path, ...})``,
@@ -178,7 +179,13 @@ class _Stats:
         self.first_due = self.last_due = self.last_done = None
         self.cpu_first = self.cpu_last = 0.0   # process CPU time at the first / last publish
         self.passes = 0
+        self.shifts, self.shifted_s = 0, 0.0  # schedule shifts (max_lateness) and their sum
         self.lock = threading.Lock()  # summary() may be called during playback
+
+    def shift(self, seconds: float) -> None:
+        with self.lock:
+            self.shifts += 1
+            self.shifted_s += seconds
 
     def record(self, topic: str, nbytes: int, due: float, start: float, done: float) -> None:
         late = max(0.0, start - due)
@@ -236,6 +243,13 @@ class BagPlayer(Node):
                                      "[s]; then play anyway (with a warning).", min_value=0.0)
         prefetch_mb = declare(self, "prefetch_mb", 128.0, "Megabytes of messages read ahead of "
                               "the schedule.", min_value=1.0)
+        self._max_late = declare(
+            self, "max_lateness", 0.0, "Longest a message may go out behind its schedule [s] "
+            "before the rest of the playback is shifted later by that lateness: a stall of the "
+            "player or the machine then delays the bag, as it would a live sensor, instead of "
+            "publishing the late messages in a burst that overruns subscribers' queues "
+            "(0: never shift, late messages go out at once, as ros2 bag play does).",
+            min_value=0.0)
         publish_log = declare(self, "publish_log", "", "Write one line per published message "
                               "to this file: bag topic, log time [ns], system time of the "
                               "publish call [ns] (latency measurements; empty: none).")
@@ -335,6 +349,9 @@ class BagPlayer(Node):
                 if self._stop.is_set():
                     break
                 start = time.monotonic()
+                if self._max_late and start - due > self._max_late:
+                    t0 += start - due  # counted below with this message's lateness
+                    self.stats.shift(start - due)
                 if self._clock_pub is not None and msg.stamp_ns != self._last_clock:
                     self._publish_clock(msg.stamp_ns)
                 if self._plog is not None:
@@ -445,6 +462,8 @@ class BagPlayer(Node):
             late_ms_p50=_ms(every, 50), late_ms_p99=_ms(every, 99),
             late_ms_max=round(max(s.late_max.values(), default=0.0) * 1e3, 2),
             late_over_10ms=sum(s.n_late.values()),
+            # max_lateness: how often and by how much the rest of the playback was delayed
+            shifts=s.shifts, shifted_ms=round(s.shifted_s * 1e3, 1),
             # the whole process (reading, publishing, /clock) from the first to the last publish
             cpu_s=round(s.cpu_last - s.cpu_first, 3), topics=topics)
 
@@ -456,7 +475,9 @@ def format_summary(summary: dict) -> str:
                  f"rate {summary['achieved_rate']:.3f} (asked {summary['rate']}), "
                  f"{summary['mb_per_s']} MB/s; late p50 {summary['late_ms_p50']} ms, p99 "
                  f"{summary['late_ms_p99']} ms, max {summary['late_ms_max']} ms, "
-                 f"{summary['late_over_10ms']} more than 10 ms late")
+                 f"{summary['late_over_10ms']} more than 10 ms late"
+                 + (f"; schedule shifted {summary['shifts']} times by {summary['shifted_ms']} ms "
+                    "in all (max_lateness)" if summary.get("shifts") else ""))
     lines.append(f"{'topic':<32} {'msgs':>6} {'Hz':>8} {'MB':>9} {'late p99 ms':>12} "
                  f"{'late max ms':>12} {'pub p99 ms':>11}")
     for t, v in summary["topics"].items():
@@ -486,6 +507,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--wait-for-subscribers", type=int, metavar="N",
                    help="wait until every topic has N subscribers")
     p.add_argument("--wait-timeout", type=float, metavar="S", help="longest wait for subscribers")
+    p.add_argument("--max-lateness", type=float, metavar="S",
+                   help="shift the rest of the playback when a message is more than S seconds "
+                        "late, instead of publishing the late messages at once (default 0: never)")
     p.add_argument("--prefetch-mb", type=float, metavar="MB", help="read-ahead buffer (default 128)")
     p.add_argument("--summary-json", type=Path, metavar="PATH", help="also write the summary as JSON")
     p.add_argument("--publish-log", type=Path, metavar="PATH",
@@ -499,7 +523,7 @@ def cli_parameters(ns: argparse.Namespace) -> dict:
     out = {"bag": ns.bag, "rate": ns.rate, "loop": ns.loop, "start_offset": ns.start_offset,
            "delay": ns.delay, "clock": ns.clock, "clock_rate": ns.clock_rate,
            "wait_for_subscribers": ns.wait_for_subscribers, "wait_timeout": ns.wait_timeout,
-           "prefetch_mb": ns.prefetch_mb,
+           "prefetch_mb": ns.prefetch_mb, "max_lateness": ns.max_lateness,
            "publish_log": str(ns.publish_log) if ns.publish_log else None,
            "topics": " ".join(ns.topics) if ns.topics else None,
            "exclude_topics": " ".join(ns.exclude_topics) if ns.exclude_topics else None,

@@ -19,7 +19,7 @@ from std_msgs.msg import Header
 from vision_msgs.msg import Detection3D, Detection3DArray
 
 from lidar_quality_ros.bag_io import BagWriter
-from lidar_quality_ros.bag_player import BagPlayer, parse_remaps, playback_qos
+from lidar_quality_ros.bag_player import BagPlayer, format_summary, parse_remaps, playback_qos
 from lidar_quality_ros.qos import output_qos
 
 T0 = 1_700_000_000 * 10**9
@@ -251,6 +251,45 @@ def test_publish_log_has_every_message_with_its_publish_time(ros, tmp_path):
     # never ahead of the recorded schedule (late, on a loaded machine, is possible)
     assert wall[-1] - wall[0] >= int(rows[-1][1]) - int(rows[0][1]) - 1e6
     assert all(c.wait_for(len(sent[t]), timeout=10.0) for t, c in cols.items())
+
+
+def _stall_player_during_playback(player, seconds):
+    """A real stall of the player's threads: this thread keeps the GIL for ``seconds`` once
+    a few frames are out (as a long C call or collection would)."""
+    assert wait_until(lambda: player.summary()["messages"] >= 6, 10.0)
+    old = sys.getswitchinterval()
+    sys.setswitchinterval(10.0)
+    try:
+        end = time.monotonic() + seconds
+        while time.monotonic() < end:
+            pass
+    finally:
+        sys.setswitchinterval(old)
+
+
+@pytest.mark.parametrize("max_lateness", [0.0, 0.03])
+def test_a_stall_shifts_the_schedule_instead_of_bursting(ros, tmp_path, max_lateness):
+    sent = make_bag(tmp_path / "b", frames=20)
+    cols = collectors(ros, ["/pts"])
+    log = tmp_path / "published.txt"
+    player = ros.start(BagPlayer, parameters={
+        "bag": str(tmp_path / "b"), "wait_for_subscribers": 1, "topics": "/pts",
+        "max_lateness": max_lateness, "publish_log": str(log)})
+    _stall_player_during_playback(player, 0.5)
+    assert player.finished.wait(30.0) and player.error is None
+    assert cols["/pts"].wait_for(20, timeout=10.0)
+    assert [m for m in cols["/pts"].messages] == [m for _, m in sent["/pts"]]
+    gaps = np.diff([int(line.split()[2]) for line in log.read_text().splitlines()]) / 1e9
+    summary = player.summary()
+    if max_lateness:
+        # the late frame goes out at once, the next ones a whole period after it: never
+        # closer than the period minus the lateness allowed without a shift
+        assert gaps.min() >= PERIOD / 1e9 - max_lateness - 1e-3, gaps
+        assert summary["shifts"] >= 1 and summary["shifted_ms"] >= 300, summary
+        assert "schedule shifted" in format_summary(summary)
+    else:  # as ros2 bag play: the frames due during the stall go out back to back
+        assert gaps.min() < 0.01, gaps
+        assert summary["shifts"] == 0 and summary["late_ms_max"] >= 300, summary
 
 
 def test_missing_bag_exits_nonzero_with_a_clear_message(tmp_path):

@@ -67,6 +67,9 @@ def test_demo_end_to_end(bags, tmp_path):
     assert all(v > 0 for v in cpu.values()), cpu
     assert abs(cpu["total"] - sum(v for n, v in cpu.items() if n != "total")) < 0.5
     assert any(x.startswith("demo: CPU per frame [ms]: player ") for x in head), head
+    # the player's schedule shifts (max_lateness: stalls delay, never burst) are reported
+    assert s["player"]["shifts"] >= 0 and s["player"]["shifted_ms"] >= 0
+    assert (s["player"]["shifts"] > 0) == any("the player stalled" in x for x in head)
     # every main output recorded once per processed frame, with the input's stamps
     info = bag_info(out / "outputs")
     for node, (_, main) in NODES.items():
