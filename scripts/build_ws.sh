@@ -23,14 +23,17 @@ if [ -n "$external" ]; then
 else
   rm -f "$ignore"
 fi
-# the same rule for our tf2_msgs copy (TFMessage, TF2Error: no tf2_msgs wheel exists)
-tf2_ignore=ros2_ws/src/tf2_msgs/COLCON_IGNORE
-rm -f "$tf2_ignore"
-for p in "${prefixes[@]}"; do
-  case "$p" in "$LQ_ROOT/ros2_ws/install"*) continue ;; esac
-  if [ -e "$p/share/ament_index/resource_index/packages/tf2_msgs" ]; then
-    echo "build: using the installed tf2_msgs in $p"; touch "$tf2_ignore"; break
-  fi
+# the same rule for our other copies: tf2_msgs (TFMessage, TF2Error: no tf2_msgs wheel)
+# and Autoware's detected-object messages
+for pkg in tf2_msgs autoware_perception_msgs; do
+  pkg_ignore=ros2_ws/src/$pkg/COLCON_IGNORE
+  rm -f "$pkg_ignore"
+  for p in "${prefixes[@]}"; do
+    case "$p" in "$LQ_ROOT/ros2_ws/install"*) continue ;; esac
+    if [ -e "$p/share/ament_index/resource_index/packages/$pkg" ]; then
+      echo "build: using the installed $pkg in $p"; touch "$pkg_ignore"; break
+    fi
+  done
 done
 cd ros2_ws
 colcon --log-base log build --symlink-install --event-handlers console_direct- \

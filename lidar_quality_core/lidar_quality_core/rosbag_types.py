@@ -1,7 +1,8 @@
 """A rosbags typestore for ROS 2 Jazzy extended with our message packages.
 
-``vision_msgs`` and ``lidar_quality_msgs`` are registered from their ``.msg`` files as
-installed in the ament index (the workspace's, or a system vision_msgs), else from the
+``vision_msgs``, ``lidar_quality_msgs`` and ``autoware_perception_msgs`` are registered
+from their ``.msg`` files as installed in the ament index (the workspace's, or a system
+copy), else from the
 repository's ``ros2_ws/src``: never from a second copy of the definitions.
 """
 from __future__ import annotations
@@ -10,7 +11,7 @@ import os
 from functools import lru_cache
 from pathlib import Path
 
-PACKAGES = ("vision_msgs", "lidar_quality_msgs")
+PACKAGES = ("vision_msgs", "lidar_quality_msgs", "autoware_perception_msgs")
 _REPO_SRC = Path(__file__).resolve().parents[2] / "ros2_ws" / "src"
 
 

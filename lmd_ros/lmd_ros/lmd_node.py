@@ -48,6 +48,7 @@ processed as if the frames were equal.
 from __future__ import annotations
 
 
+from lidar_quality_core.autoware_objects import AutowareDetections, parse_class_map
 from lidar_quality_core.detection_cdr import decode_detection_array
 from lidar_quality_msgs.msg import DetectionQualityArray
 from lidar_quality_ros.node_base import QualityNode
@@ -69,25 +70,34 @@ class LmdNode(QualityNode):
         transforms = self.listen_transforms(p.transform_inputs, p.transform_tolerance)
         self.processor = LmdProcessor(p.settings, self.models, min_confidence=p.min_confidence,
                                       transforms=transforms,
-                                      transform_inputs=p.transform_inputs)
+                                      transform_inputs=p.transform_inputs,
+                                      existence_fallback=p.existence_fallback)
 
         mode = p.settings.proposal_mode
+        self.autoware = p.input_type == "autoware"
+        if self.autoware:
+            from autoware_perception_msgs.msg import DetectedObjects
+            self.class_map = parse_class_map(p.autoware_class_map)
+            det_type, out_name = DetectedObjects, "output/objects"
+        else:
+            det_type, out_name = Detection3DArray, "output/detections"
         topics = [(PointCloud2, "input/points")]
         if mode != "exact":
-            topics.append((Detection3DArray, "input/detections"))
+            topics.append((det_type, "input/detections"))
         if mode != "none":
-            topics.append((Detection3DArray, "input/proposals"))
-        self.create_output(Detection3DArray, "output/detections")
+            topics.append((det_type, "input/proposals"))
+        self.create_output(det_type, out_name)
         self.create_output(DetectionQualityArray, "output/quality")
         self.create_markers_output(p.publish_markers, MarkerArray)
-        for key, value in (("proposal_mode", mode),
+        for key, value in (("proposal_mode", mode), ("input_type", p.input_type),
                            ("model.confidence", self.models.confidence_model_id),
                            ("model.iou", self.models.iou_model_id)):
             self.diag.set_value(key, value)
         # Detection arrays arrive as bytes, decoded by detection_cdr: rclpy's own
         # deserialization of ~450 proposals x 4 hypotheses costs 100-300 ms per frame.
-        self.start_inputs(topics, raw_decoders={t: decode_detection_array for _, t in topics
-                                                if t != "input/points"}, hints={
+        # (Autoware's DetectedObjects are taken as messages and read in process())
+        self.start_inputs(topics, raw_decoders={} if self.autoware else {
+            t: decode_detection_array for _, t in topics if t != "input/points"}, hints={
             "input/proposals": "set proposal_mode: none if your detector publishes no "
                                "pre-NMS proposals (with the none-mode models)",
             "input/detections": "set proposal_mode: exact if only proposals are published "
@@ -98,6 +108,10 @@ class LmdNode(QualityNode):
 
     def process(self, messages: list, markers: bool):
         msgs = dict(zip(self.inputs.topics, messages))
+        if self.autoware:
+            for t in ("input/detections", "input/proposals"):
+                if t in msgs:
+                    msgs[t] = AutowareDetections.read(msgs[t], self.class_map)
         return self.processor.process(msgs["input/points"], msgs.get("input/detections"),
                                       msgs.get("input/proposals"), markers=markers)
 

@@ -58,6 +58,8 @@ from pathlib import Path
 
 import numpy as np
 
+from lidar_quality_core.autoware_objects import (DEFAULT_CLASS_MAP, AutowareDetections,
+                                                 kept_objects, score_objects)
 from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt_issue
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
                                               rescaled_scores)
@@ -134,6 +136,21 @@ class LmdParameters:
     publish_markers: bool = param(
         True, "Publish output/markers (boxes coloured by confidence; built only while someone "
         "subscribes).")
+    input_type: str = param(
+        "vision_msgs", "Message type of input/detections and input/proposals and of the "
+        "re-scored output: 'vision_msgs' (Detection3DArray in, output/detections) or "
+        "'autoware' (autoware_perception_msgs/DetectedObjects in, output/objects with the meta "
+        "confidence as existence_probability).", choices=("vision_msgs", "autoware"))
+    autoware_class_map: str = param(
+        " ".join(f"{k}:{v}" for k, v in DEFAULT_CLASS_MAP.items()),
+        "input_type autoware: Autoware classification label -> model class name "
+        "('LABEL:name', separated by spaces or commas); objects whose top label is not "
+        "mapped to one of class_names pass through unscored (counted as detections.invalid).")
+    existence_fallback: float = param(
+        -1.0, "input_type autoware: existence_probability of an object without a meta "
+        "confidence (invalid box, unmapped class): -1 keeps the detector's own (0 if it is "
+        "not finite), else this value. Counted as detections.fallback; NaN never goes out.",
+        min_value=-1.0, max_value=1.0)
     transform_inputs: bool = param(
         True, "Transform input/detections and input/proposals into input/points' frame "
         "(/tf_static, /tf) when their frame_id differs; a frame whose transform is missing is "
@@ -258,11 +275,12 @@ def _exact_nms(props: DetectionArrays, settings: LmdSettings):
 
 
 def _arrays(dets) -> DetectionArrays:
-    return dets.arrays if isinstance(dets, DecodedDetections) else detections_to_arrays(dets)
+    read = getattr(dets, "arrays", None)  # DecodedDetections, AutowareDetections
+    return read if isinstance(read, DetectionArrays) else detections_to_arrays(dets)
 
 
 def _messages(dets, rows) -> list | None:
-    if isinstance(dets, DecodedDetections):
+    if isinstance(dets, (DecodedDetections, AutowareDetections)):
         return None
     msgs = dets.detections
     return [msgs[i] for i in rows.tolist()]
@@ -385,7 +403,8 @@ class LmdOutputs:
     confidence: np.ndarray     # (n,) NaN for invalid boxes
     predicted_iou: np.ndarray  # (n,)
     kept: np.ndarray           # (n,) bool: published on output/detections
-    detections: object         # Detection3DArray, or its serialized bytes for decoded input
+    detections: object         # Detection3DArray, or its serialized bytes for decoded
+    #                            input, or DetectedObjects for Autoware input
     quality: object            # DetectionQualityArray (every scored box, kept or not)
     markers: object = None     # MarkerArray, or None when not asked for
     #: input problems by key (``"detections"``, ``"frame_id"``, ``"scores"``,
@@ -394,10 +413,13 @@ class LmdOutputs:
     notes: list = field(default_factory=list)     # decisions to log once (info)
     values: dict = field(default_factory=dict)    # diagnostics values of this frame
     errors: frozenset = frozenset()               # keys of ``issues`` at level ERROR
+    #: Autoware input: objects whose existence_probability is the fallback (else None)
+    fallback: int | None = None
 
     @property
     def messages(self) -> dict:
-        return {"output/detections": self.detections, "output/quality": self.quality}
+        out = "output/detections" if self.fallback is None else "output/objects"
+        return {out: self.detections, "output/quality": self.quality}
 
     @property
     def counts(self) -> dict:
@@ -406,7 +428,8 @@ class LmdOutputs:
                 # as LMS: invalid = not used (NaN / inf or padding), of which padding
                 "points.invalid": f.points_in - f.n_points,
                 "detections.in": len(self.kept), "detections.out": int(self.kept.sum()),
-                "detections.invalid": int((~self.frame.valid).sum())}
+                "detections.invalid": int((~self.frame.valid).sum()),
+                **({} if self.fallback is None else {"detections.fallback": self.fallback})}
 
 
 class LmdProcessor:
@@ -423,7 +446,7 @@ class LmdProcessor:
 
     def __init__(self, settings: LmdSettings, models, *, min_confidence: float = 0.0,
                  transforms=None, transform_inputs: bool = True,
-                 transform_tolerance: float = 0.05):
+                 transform_tolerance: float = 0.05, existence_fallback: float = -1.0):
         settings.validate()
         if tuple(models.feature_names) != settings.feature_names():
             raise ValueError("models were loaded for another feature schema than the settings'")
@@ -432,6 +455,8 @@ class LmdProcessor:
         self.settings = settings
         self.models = models
         self.min_confidence = float(min_confidence)
+        #: Autoware output: existence_probability without a confidence (< 0: the detector's)
+        self.existence_fallback = float(existence_fallback)
         self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
         self._padding = PaddingNote()
         self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
@@ -470,11 +495,18 @@ class LmdProcessor:
         header = frame.header
         dets = frame.detections
         src = frame.source
+        fallback = None
         if isinstance(src, DecodedDetections):
             conf_src = np.full(len(src), np.nan)
             conf_src[frame.rows] = conf
             new = rescaled_scores(src.hyp_score, src.hyp_det, conf_src)
             det_msg = encode_detection_array(src, frame.rows[kept], new)
+        elif isinstance(src, AutowareDetections):  # re-scored in place, as messages are
+            det_msg = src.msg
+            det_msg.objects = [det_msg.objects[i] for i in frame.rows.tolist()]
+            fallback = score_objects(det_msg, conf, fallback=(
+                None if self.existence_fallback < 0 else self.existence_fallback))
+            kept_objects(det_msg, kept)
         else:
             hyps = [r.hypothesis for m in frame.messages for r in m.results]
             owner = np.repeat(np.arange(n), [len(m.results) for m in frame.messages])
@@ -505,7 +537,7 @@ class LmdProcessor:
         return LmdOutputs(frame, conf, iou, kept, det_msg, quality, mk, issues,
                           ([self.intensity.note] if self.intensity.note else [])
                           + self._padding(frame.n_padding, frame.points_in),
-                          {"intensity_scale": self.intensity.decided})
+                          {"intensity_scale": self.intensity.decided}, fallback=fallback)
 
     def markers(self, frame: LmdFrame, conf, iou, kept):
         """Boxes of the published detections coloured by confidence, labelled

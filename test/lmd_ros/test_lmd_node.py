@@ -32,7 +32,8 @@ from visualization_msgs.msg import MarkerArray
 
 PARAMS = ("proposal_mode", "classifier_path", "regressor_path", "iou_threshold",
           "proposal_score_threshold", "nms_iou_threshold", "nms_score_threshold",
-          "class_names", "min_confidence", "publish_markers", "transform_inputs",
+          "class_names", "min_confidence", "publish_markers", "input_type",
+          "autoware_class_map", "existence_fallback", "transform_inputs",
           "transform_tolerance", "sync_mode", "sync_slop",
           "sync_queue_size", "processing_queue_size", "diagnostics_period",
           "diagnostics_window", "drop_warn_fraction", "drop_error_fraction", "input_timeout",
@@ -305,6 +306,82 @@ def test_detections_in_another_frame(ros, models_dir):
     msg = node.diag.status().message
     assert "'radar_link'" in msg and "'lidar_top'" in msg and "at stamp 3.000000000 s" in msg
     assert node.diag.dropped == 1 and len(io.quality.messages) == 2
+
+
+# ---------------------------------------------------------------- Autoware
+def _static_transform(ros, t, parent, child):
+    ts = TransformStamped()
+    ts.header.frame_id, ts.child_frame_id = parent, child
+    v = ts.transform.translation
+    v.x, v.y, v.z = t.translation.tolist()
+    r = ts.transform.rotation
+    r.x, r.y, r.z, r.w = t.rotation.tolist()
+    ros.publisher(TFMessage, "/tf_static", tf_static_qos()).publish(TFMessage(transforms=[ts]))
+
+
+def test_autoware_objects_in_base_link(ros, models_dir):
+    """Acceptance (issue 19): DetectedObjects in base_link (a static transform to the
+    cloud's frame), detections and proposals, into lmd_node: every object comes out on
+    output/objects in the same order, existence_probability = the vision_msgs path's
+    confidence for the same scene, the classification re-scaled, NaN never out."""
+    from autoware_perception_msgs.msg import DetectedObjects
+    from autoware_scenes import detected_objects, float32_scores
+
+    t_base_lidar = Transform.from_yaw(0.3, (1.2, 0.1, 1.8))
+    _static_transform(ros, t_base_lidar, "base_link", "lidar_top")
+    node = ros.start(LmdNode, parameters=model_params(models_dir, input_type="autoware",
+                                                      diagnostics_period=0.2))
+    assert wait_until(lambda: node.tf.buffer.can_transform("lidar_top", "base_link"))
+    pubs = {"points": ros.sensor_publisher(PointCloud2, "input/points"),
+            "detections": ros.sensor_publisher(DetectedObjects, "input/detections"),
+            "proposals": ros.sensor_publisher(DetectedObjects, "input/proposals")}
+    objects = ros.collector(DetectedObjects, "output/objects")
+    quality = ros.collector(DetectionQualityArray, "output/quality")
+    assert all(ros.wait_for_match(p) for p in pubs.values())
+    assert ros.wait_for_match(objects.subscription) and ros.wait_for_match(quality.subscription)
+    models = load_models(models_dir)
+    confs = []
+    for k, (sec, seed) in enumerate([(1, 11), (2, 12)]):
+        cloud, dets, props = frame(seed, sec)
+        # the same scene through the vision_msgs path (scores in float32, as Autoware has them)
+        dets32, props32 = float32_scores(dets), float32_scores(props)
+        conf, iou = models.predict(frame_features(cloud, dets32, props32, LmdSettings()).features)
+        confs.append(conf)
+        sent = detected_objects(detections_in_frame(dets32, t_base_lidar, "base_link"))
+        pubs["detections"].publish(sent)
+        pubs["proposals"].publish(detected_objects(
+            detections_in_frame(props32, t_base_lidar, "base_link")))
+        pubs["points"].publish(cloud)
+        assert objects.wait_for(k + 1, timeout=15.0) and quality.wait_for(k + 1, 5.0)
+        got, q = objects.messages[k], quality.messages[k]
+        assert got.header == sent.header and len(got.objects) == len(sent.objects)
+        assert [o.kinematics for o in got.objects] == [o.kinematics for o in sent.objects]
+        assert [o.shape for o in got.objects] == [o.shape for o in sent.objects]
+        np.testing.assert_allclose([e.confidence for e in q.detections], conf, rtol=0, atol=1e-9)
+        np.testing.assert_allclose([e.predicted_iou for e in q.detections], iou, rtol=0,
+                                   atol=1e-9)
+        # float32 on the wire; no confidence (invalid box): the detector's own 0.5, never NaN
+        want = np.where(np.isnan(conf), 0.5, conf)
+        exist = np.array([o.existence_probability for o in got.objects])
+        np.testing.assert_allclose(exist, want, rtol=1e-6, atol=1e-7)
+        for o, s, c in zip(got.objects, sent.objects, conf.tolist()):
+            p_got = np.array([x.probability for x in o.classification])
+            p_sent = np.array([x.probability for x in s.classification])
+            assert [x.label for x in o.classification] == [x.label for x in s.classification]
+            if np.isfinite(c):  # top class = confidence, the others in proportion
+                np.testing.assert_allclose(p_got.max(), c, rtol=1e-6)
+                np.testing.assert_allclose(p_got * p_sent.max(), p_sent * p_got.max(), rtol=1e-5)
+    allc = np.concatenate(confs)
+    assert allc[np.isfinite(allc)].min() < 0.5 < allc[np.isfinite(allc)].max()
+    assert wait_until(lambda: diag_values(node.diag.status()).get("detections.fallback")
+                      == str(int(np.isnan(allc).sum())))
+    assert node.diag.dropped == 0
+
+
+def test_autoware_class_map_refused_when_malformed(ros, models_dir):
+    with pytest.raises(Exception, match="not an Autoware label"):
+        ros.start(LmdNode, parameters=model_params(models_dir, input_type="autoware",
+                                                   autoware_class_map="LORRY:car"))
 
 
 # ---------------------------------------------------------------- bad input

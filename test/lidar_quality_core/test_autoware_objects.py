@@ -1,0 +1,90 @@
+"""autoware_objects: DetectedObjects read into DetectionArrays (boxes, classes, shapes) as
+the vision_msgs path reads the same scene, and the meta confidence written back."""
+import math
+
+import numpy as np
+import pytest
+from autoware_perception_msgs.msg import (DetectedObject, DetectedObjects, ObjectClassification,
+                                          Shape)
+from geometry_msgs.msg import Point32
+from lidar_quality_core.autoware_objects import (label_names, objects_to_arrays,
+                                                 parse_class_map, score_objects)
+from lidar_quality_core.boxes import arrays_to_detections, detections_to_arrays
+from std_msgs.msg import Header
+
+
+def _obj(x, y, yaw, size, classes, shape=Shape.BOUNDING_BOX, existence=0.5, footprint=None):
+    o = DetectedObject(existence_probability=existence)
+    p = o.kinematics.pose_with_covariance.pose
+    p.position.x, p.position.y, p.position.z = x, y, 0.8
+    p.orientation.z, p.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
+    o.shape.type = shape
+    o.shape.dimensions.x, o.shape.dimensions.y, o.shape.dimensions.z = size
+    if footprint is not None:
+        o.shape.footprint.points = [Point32(x=a, y=b) for a, b in footprint]
+    o.classification = [ObjectClassification(label=lb, probability=pr) for lb, pr in classes]
+    return o
+
+
+def _scene():
+    C = ObjectClassification
+    return DetectedObjects(header=Header(frame_id="base_link"), objects=[
+        _obj(10, 2, 0.3, (4.2, 1.8, 1.5), [(C.CAR, 0.75), (C.TRUCK, 0.25)]),
+        _obj(-5, 1, -1.0, (0.6, 0.0, 1.7), [(C.PEDESTRIAN, 0.5)], shape=Shape.CYLINDER),
+        _obj(3, -4, 0.0, (0, 0, 1.2), [(C.BICYCLE, 0.625)], shape=Shape.POLYGON,
+             footprint=[(-0.9, -0.3), (0.9, -0.3), (0.9, 0.3), (-0.9, 0.3)]),
+        _obj(20, 0, 0.0, (11.0, 2.5, 3.2), [(C.BUS, 0.875)]),
+        _obj(7, 7, 0.0, (1, 1, 1), [(C.CAR, 0.5)], shape=7),
+    ])
+
+
+def test_boxes_classes_and_shapes():
+    a = objects_to_arrays(_scene())
+    assert a.ids == ["0", "1", "2", "3", "4"]
+    np.testing.assert_allclose(a.boxes[0], [10, 2, 0.8, 4.2, 1.8, 1.5, 0.3], atol=1e-6)
+    np.testing.assert_allclose(a.boxes[1, 3:6], [0.6, 0.6, 1.7], atol=1e-6)  # cylinder
+    np.testing.assert_allclose(a.boxes[2, 3:6], [1.8, 0.6, 1.2], atol=1e-6)  # polygon extents
+    assert a.labels[:4] == ["car", "pedestrian", "cyclist", "bus"]  # BUS: no model class
+    np.testing.assert_allclose(a.scores[:4], [0.75, 0.5, 0.625, 0.875])
+    np.testing.assert_allclose(a.class_scores["truck"][0], 0.25)
+    assert a.valid.tolist() == [True, True, True, True, False]
+    assert a.reasons[4] == "unknown shape type 7"
+
+
+def test_same_arrays_as_the_vision_msgs_path():
+    # the scene's first three objects as Detection3DArray, read by the vision_msgs rules
+    aw = objects_to_arrays(_scene())
+    boxes = aw.boxes[:3]
+    vis = detections_to_arrays(arrays_to_detections(
+        Header(frame_id="base_link"), boxes, aw.labels[:3], aw.scores[:3], ids=aw.ids[:3]))
+    np.testing.assert_allclose(vis.boxes, boxes, atol=1e-6)
+    assert vis.labels == aw.labels[:3] and vis.ids == aw.ids[:3]
+    np.testing.assert_allclose(vis.scores, aw.scores[:3])
+
+
+def test_class_map_parameter():
+    m = parse_class_map("CAR:car, BUS:truck trailer:truck")
+    assert m == {"CAR": "car", "BUS": "truck", "TRAILER": "truck"}
+    assert label_names(m)[3] == "truck" and label_names(m)[7] == "pedestrian"
+    assert objects_to_arrays(_scene(), m).labels[3] == "truck"
+    with pytest.raises(ValueError, match="not an Autoware label"):
+        parse_class_map("LORRY:truck")
+    with pytest.raises(ValueError, match="expected AUTOWARE_LABEL:class_name"):
+        parse_class_map("CAR")
+
+
+def test_scores_written_back_and_nan_never_out():
+    msg = _scene()
+    msg.objects[3].existence_probability = float("nan")
+    n = score_objects(msg, [0.9, 0.2, np.nan, np.nan, 0.4])
+    assert n == 2
+    e = [o.existence_probability for o in msg.objects]
+    np.testing.assert_allclose(e, [0.9, 0.2, 0.5, 0.0, 0.4], rtol=1e-6)  # float32 fields
+    car = [c.probability for c in msg.objects[0].classification]
+    np.testing.assert_allclose(car, [0.9, 0.3], rtol=1e-6)  # top = confidence, ratio kept
+    assert msg.objects[2].classification[0].probability == 0.625  # unscored: as it came
+    fixed = _scene()
+    assert score_objects(fixed, [np.nan] * 5, fallback=0.1) == 5
+    assert all(abs(o.existence_probability - 0.1) < 1e-7 for o in fixed.objects)
+    with pytest.raises(ValueError, match="2 confidences for 5 objects"):
+        score_objects(_scene(), [0.1, 0.2])
