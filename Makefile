@@ -15,7 +15,7 @@ WS_INPUTS := $(shell find -L ros2_ws/src -maxdepth 3 \( -name package.xml -o -na
 	lms-models mimo-models fuzz soak clean distclean lock
 
 help:
-	@echo "make demo   run the main job (set-up and build on first use)"
+	@echo "make demo   run the main job (set-up and build on first use); AUTOWARE=1: LMD and MIMO on Autoware DetectedObjects"
 	@echo "make test   run the test suite (set-up and build on first use)"
 	@echo "make reference-models   retrain the reference perception under models/reference"
 	@echo "make meta-models   retrain the LMD / LMS / MIMO meta models (models/lmd, lms, mimo) and write their reports"
@@ -41,7 +41,8 @@ bench: build
 # The main job: the three nodes on a replayed simulated perception bag (generated once into
 # data/perception/demo), evaluated against the ground truth: out/demo/report.md.
 demo: build data/perception/demo/.done
-	bash scripts/with_env.sh python -m lidar_quality_tools.demo --bag data/perception/demo --out out/demo
+	bash scripts/with_env.sh python -m lidar_quality_tools.demo --bag data/perception/demo \
+		--out out/demo$(if $(AUTOWARE),_autoware --autoware)
 
 # Retrain the reference detector, multi-head detector and segmenter on the simulated
 # reference_train split and print their held-out quality (reference_test).

@@ -28,11 +28,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .boxes import DetectionArrays, arrays_from_fields
+from .boxes import DetectionArrays, arrays_from_fields, yaw_to_quaternion
 from .detection_cdr import rescaled_scores
+from .parameters import param
 
-__all__ = ["LABELS", "DEFAULT_CLASS_MAP", "AutowareDetections", "parse_class_map",
-           "label_names", "objects_to_arrays", "score_objects", "kept_objects"]
+__all__ = ["LABELS", "DEFAULT_CLASS_MAP", "AutowareDetections", "AutowareOutput",
+           "parse_class_map",
+           "label_names", "objects_to_arrays", "score_objects", "kept_objects",
+           "objects_from_boxes", "objects_from_detections", "input_type_param", "class_map_param",
+           "existence_fallback_param"]
 
 #: ObjectClassification labels by value (autoware_perception_msgs constants).
 LABELS = ("UNKNOWN", "CAR", "TRUCK", "BUS", "TRAILER", "MOTORCYCLE", "BICYCLE", "PEDESTRIAN",
@@ -58,6 +62,15 @@ class AutowareDetections:
 
     def __len__(self) -> int:
         return len(self.arrays)
+
+
+@dataclass
+class AutowareOutput:
+    """How a node writes DetectedObjects: its class map (None: :data:`DEFAULT_CLASS_MAP`)
+    and ``existence_fallback`` (< 0: the node's own fallback, see the parameter)."""
+
+    class_map: dict | None = None
+    existence_fallback: float = -1.0
 
 
 def parse_class_map(text: str) -> dict[str, str]:
@@ -154,3 +167,109 @@ def kept_objects(msg, kept):
     """``msg`` with only the objects where ``kept`` is True (same order; in place)."""
     msg.objects = [o for o, k in zip(msg.objects, np.asarray(kept, bool).tolist()) if k]
     return msg
+
+
+def _label_of(class_map: dict[str, str] | None) -> dict[str, int]:
+    """Our class name -> Autoware label value (the first label mapped to it)."""
+    m = DEFAULT_CLASS_MAP if class_map is None else class_map
+    out: dict[str, int] = {}
+    for label, name in m.items():
+        out.setdefault(name, LABELS.index(label))
+    return out
+
+
+def objects_from_boxes(header, boxes, class_names, class_probs, existence, *,
+                       fallback=None, variance=None, class_map: dict[str, str] | None = None):
+    """``(DetectedObjects, n_fallback)`` of new boxes (mimo_node's merged detections).
+
+    ``boxes`` (n, 7) x y z l w h yaw; ``class_probs`` (n, C) over ``class_names``: one
+    ObjectClassification per class, highest first (a class without an Autoware label:
+    UNKNOWN); ``existence`` (n,) the meta confidence, NaN replaced by ``fallback[i]`` (or 0)
+    and counted; ``variance`` (n, 4) of x, y, z, yaw on the pose covariance diagonal
+    (``has_position_covariance`` where x, y, z are finite). Shape BOUNDING_BOX; the yaw's
+    front / back is not established: ``orientation_availability`` SIGN_UNKNOWN.
+    """
+    from autoware_perception_msgs.msg import (DetectedObject, DetectedObjectKinematics,
+                                              DetectedObjects, ObjectClassification)
+
+    boxes = np.asarray(boxes, np.float64).reshape(-1, 7)
+    probs = np.asarray(class_probs, np.float64).reshape(len(boxes), len(class_names))
+    ex = np.asarray(existence, np.float64).reshape(-1)
+    fb = np.zeros(len(boxes)) if fallback is None else np.asarray(fallback, np.float64)
+    bad = ~np.isfinite(ex)
+    ex = np.where(bad, np.where(np.isfinite(fb), fb, 0.0), ex)
+    labels = _label_of(class_map)
+    codes = [labels.get(n, 0) for n in class_names]
+    order = np.argsort(-np.nan_to_num(probs, nan=-np.inf), axis=1, kind="stable")
+    quats = yaw_to_quaternion(boxes[:, 6]).tolist() if len(boxes) else []
+    var = None if variance is None else np.asarray(variance, np.float64).reshape(-1, 4)
+    out = DetectedObjects(header=header)
+    for i, (b, q, e) in enumerate(zip(boxes.tolist(), quats, ex.tolist())):
+        o = DetectedObject(existence_probability=e)
+        o.classification = [ObjectClassification(label=codes[c], probability=probs[i, c])
+                            for c in order[i].tolist()]
+        k = o.kinematics
+        pose = k.pose_with_covariance.pose
+        pose.position.x, pose.position.y, pose.position.z = b[:3]
+        pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w = q
+        k.orientation_availability = DetectedObjectKinematics.SIGN_UNKNOWN
+        if var is not None:
+            cov = np.zeros(36)
+            cov[[0, 7, 14, 35]] = var[i]
+            k.pose_with_covariance.covariance = cov
+            k.has_position_covariance = bool(np.isfinite(var[i, :3]).all())
+        o.shape.type = BOUNDING_BOX
+        o.shape.dimensions.x, o.shape.dimensions.y, o.shape.dimensions.z = b[3:6]
+        out.objects.append(o)
+    return out, int(bad.sum())
+
+
+def objects_from_detections(msg, class_map: dict[str, str] | None = None):
+    """DetectedObjects of a vision_msgs Detection3DArray, as an Autoware detector would
+    publish the same detections: same header and order, pose = bbox centre (covariance
+    unknown), BOUNDING_BOX of the bbox size, one classification per hypothesis (class
+    names to labels by ``class_map``, UNKNOWN without one), ``existence_probability`` = the
+    top hypothesis score. Ids are dropped (DetectedObject has none); scores become float32."""
+    from autoware_perception_msgs.msg import (DetectedObject, DetectedObjectKinematics,
+                                              DetectedObjects, ObjectClassification)
+
+    labels = _label_of(class_map)
+    out = DetectedObjects(header=msg.header)
+    for d in msg.detections:
+        hyps = [r.hypothesis for r in d.results]
+        top = max((h.score for h in hyps), default=0.0)
+        o = DetectedObject(existence_probability=float(top) if np.isfinite(top) else 0.0)
+        o.kinematics.pose_with_covariance.pose = d.bbox.center
+        o.kinematics.orientation_availability = DetectedObjectKinematics.SIGN_UNKNOWN
+        o.shape.type = BOUNDING_BOX
+        o.shape.dimensions = d.bbox.size
+        o.classification = [ObjectClassification(label=labels.get(h.class_id, 0),
+                                                 probability=h.score) for h in hyps]
+        out.objects.append(o)
+    return out
+
+
+def input_type_param(inputs: str, vision_output: str):
+    """The ``input_type`` parameter field of the nodes that read detections."""
+    return param(
+        "vision_msgs", f"Message type of {inputs} and of the scored output: 'vision_msgs' "
+        f"(Detection3DArray in, {vision_output} out) or 'autoware' (autoware_perception_msgs/"
+        "DetectedObjects in, output/objects out with the meta confidence as "
+        "existence_probability).", choices=("vision_msgs", "autoware"))
+
+
+def class_map_param():
+    """The ``autoware_class_map`` parameter field."""
+    return param(
+        " ".join(f"{k}:{v}" for k, v in DEFAULT_CLASS_MAP.items()),
+        "input_type autoware: Autoware classification label -> model class name "
+        "('LABEL:name', separated by spaces or commas); an object whose top label is not "
+        "mapped to one of class_names is not scored (counted as detections.invalid).")
+
+
+def existence_fallback_param(own: str):
+    """The ``existence_fallback`` parameter field; ``own``: what -1 keeps."""
+    return param(
+        -1.0, "input_type autoware: existence_probability of an object without a meta "
+        f"confidence: -1 keeps {own} (0 if it is not finite), else this value. Counted as "
+        "detections.fallback; NaN never goes out.", min_value=-1.0, max_value=1.0)

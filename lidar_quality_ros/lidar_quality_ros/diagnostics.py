@@ -13,7 +13,10 @@ The level is the worst of:
   lost by the synchroniser, against frames out): above ``drop_warn`` WARN, above
   ``drop_error`` ERROR;
 * the processing time against the input period: a median frame time longer than the
-  period between frames means the node cannot keep up (WARN).
+  period between frames means the node cannot keep up (WARN);
+* the processing time against fixed limits, when set (``processing_warn_ms`` /
+  ``processing_error_ms``, as Autoware's nodes report theirs): the median of the last 50
+  frames above them is WARN / ERROR.
 """
 from __future__ import annotations
 
@@ -35,7 +38,8 @@ class NodeDiagnostics:
 
     def __init__(self, node, task: str = "processing", *, period_s: float = 1.0,
                  window: int = 1000, window_s: float = 10.0, drop_warn: float = 0.05,
-                 drop_error: float = 0.25, hold_s: float | None = None):
+                 drop_error: float = 0.25, hold_s: float | None = None,
+                 processing_warn_ms: float = 0.0, processing_error_ms: float = 0.0):
         self._node = node
         self.name = f"{node.get_name()}: {task}"
         self.hardware_id = node.get_fully_qualified_name()
@@ -50,6 +54,7 @@ class NodeDiagnostics:
         self._sources: list = []
         self.frames_out = 0
         self.window_s, self.drop_warn, self.drop_error = window_s, drop_warn, drop_error
+        self.processing_warn_ms, self.processing_error_ms = processing_warn_ms, processing_error_ms
         # two publications: a problem that came and went between them is still published
         self.hold_s = max(1.0, 2.0 * period_s) if hold_s is None else hold_s
         # (monotonic time, frames out, frames lost) snapshots, from the start
@@ -161,6 +166,16 @@ class NodeDiagnostics:
                 level = max(level, WARN)
                 msgs.append(f"processing takes {proc:.0f} ms per frame (median), longer than "
                             f"the input period {period_ms:.0f} ms: the node cannot keep up")
+        if recent and (self.processing_warn_ms > 0 or self.processing_error_ms > 0):
+            proc = float(np.median(recent))
+            values["processing_ms_recent"] = f"{proc:.3f}"
+            for limit, lvl, name in ((self.processing_error_ms, ERROR, "processing_error_ms"),
+                                     (self.processing_warn_ms, WARN, "processing_warn_ms")):
+                if 0 < limit < proc:
+                    level = max(level, lvl)
+                    msgs.append(f"processing takes {proc:.1f} ms per frame (median of the "
+                                f"last {len(recent)}), above {name} = {limit:g} ms")
+                    break
         return level, msgs, values
 
     def status(self) -> DiagnosticStatus:

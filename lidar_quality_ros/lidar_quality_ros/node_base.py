@@ -67,6 +67,14 @@ class CommonParameters:
     input_error_timeout: float = param(
         10.0, "Seconds without a matched input set, while inputs arrive, after which "
         "/diagnostics reports ERROR (>= input_timeout).", min_value=0.1)
+    processing_warn_ms: float = param(
+        0.0, "Processing time per frame [ms] (median of the last 50 frames) above which "
+        "/diagnostics reports WARN, as Autoware's nodes do (0: off; the check against the "
+        "input period stays).", min_value=0.0)
+    processing_error_ms: float = param(
+        0.0, "Processing time per frame [ms] (median of the last 50 frames) above which "
+        "/diagnostics reports ERROR (0: off; >= processing_warn_ms when both are set).",
+        min_value=0.0)
 
     def validate(self) -> None:
         if self.drop_error_fraction < self.drop_warn_fraction:
@@ -75,6 +83,9 @@ class CommonParameters:
         if self.input_error_timeout < self.input_timeout:
             raise ValueError(f"parameter 'input_error_timeout' = {self.input_error_timeout} "
                              f"is below 'input_timeout' = {self.input_timeout}")
+        if 0 < self.processing_error_ms < self.processing_warn_ms:
+            raise ValueError(f"parameter 'processing_error_ms' = {self.processing_error_ms} "
+                             f"is below 'processing_warn_ms' = {self.processing_warn_ms}")
 
 
 @dataclass(frozen=True)
@@ -142,7 +153,9 @@ class QualityNode(Node):
         self.diag = NodeDiagnostics(self, period_s=c.diagnostics_period,
                                     window_s=c.diagnostics_window,
                                     drop_warn=c.drop_warn_fraction,
-                                    drop_error=c.drop_error_fraction)
+                                    drop_error=c.drop_error_fraction,
+                                    processing_warn_ms=c.processing_warn_ms,
+                                    processing_error_ms=c.processing_error_ms)
         self._warned: dict[str, float] = {}
         self._warn_lock = threading.Lock()
         self._input_hints: dict[str, str] = {}

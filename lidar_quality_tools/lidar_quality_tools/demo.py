@@ -60,22 +60,49 @@ DROP_REASONS = {
     "processing_error": "frame(s) lost to a processing error (see the node log)",
     "no_head": "frame(s) without a message of any head"}
 
-def wiring(num_heads: int = 2) -> dict:
-    """node -> (parameter overrides, remaps input -> bag topic)."""
+def wiring(num_heads: int = 2, autoware: bool = False) -> dict:
+    """node -> (parameter overrides, remaps input -> bag topic); ``autoware``: LMD and MIMO
+    read their detections as DetectedObjects (``input_type: autoware``)."""
     heads = {}
     for k in range(num_heads):
         heads[f"input/head_{k}"] = f"/perception/head_{k}"
         heads[f"input/head_{k}/variance"] = f"/perception/head_{k}/variance"
     sim = {"use_sim_time": "true"}
+    aw = {**sim, "input_type": "autoware"} if autoware else sim
     return {
-        "lmd": (sim, {"input/points": "/lidar/points",
+        "lmd": (aw, {"input/points": "/lidar/points",
                       "input/detections": "/perception/detections",
                       "input/proposals": "/perception/proposals"}),
         "lms": ({**sim, "separate_probabilities": "true"},
                 {"input/points": "/lidar/points",
                  "input/probabilities": "/perception/segmentation"}),
-        "mimo": (sim, heads),
+        "mimo": (aw, heads),
     }
+
+
+def autoware_outputs(outputs: dict) -> dict:
+    """``process.OUTPUTS`` with LMD's and MIMO's detections as Autoware's output/objects."""
+    objects = "autoware_perception_msgs/msg/DetectedObjects"
+    return {n: tuple((t.replace("output/detections", "output/objects"), objects)
+                     if t.endswith("output/detections") else (t, typ) for t, typ in outs)
+            for n, outs in outputs.items()}
+
+
+def autoware_bag(bag: Path, say=print) -> Path:
+    """The Autoware twin of perception bag ``bag`` (``<folder>_autoware/<name>``: its
+    Detection3DArray topics as DetectedObjects), converted once and reused."""
+    from .autoware_bag import FORMAT, convert
+
+    twin = bag.parent.with_name(bag.parent.name + "_autoware") / bag.name
+    stamp = twin.parent / f"{bag.name}.format"  # the conversion's version, beside the bag
+    done = twin / "metadata.yaml"
+    if (not done.is_file() or done.stat().st_mtime < (bag / "metadata.yaml").stat().st_mtime
+            or not stamp.is_file() or stamp.read_text() != FORMAT):
+        say(f"demo: converting {bag}'s detections to Autoware DetectedObjects into {twin}")
+        twin.parent.mkdir(parents=True, exist_ok=True)
+        convert(bag, twin)
+        stamp.write_text(FORMAT)
+    return twin
 
 
 class Recorder:
@@ -162,8 +189,11 @@ def cpu_per_frame(cpu0: dict, cpu1: dict, player: dict, frames: int) -> dict:
     return out
 
 
-def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
-    """Steps 2-3: start the nodes, replay ``bag``, record. Returns the live figures."""
+def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print,
+             autoware: bool = False) -> dict:
+    """Steps 2-3: start the nodes, replay ``bag``, record. Returns the live figures.
+    ``autoware``: ``bag`` carries DetectedObjects (``autoware_bag``), LMD and MIMO read and
+    write them."""
     from diagnostic_msgs.msg import DiagnosticArray
     from lidar_quality_ros.bag_io import bag_info
     from lidar_quality_tools.load_test import (NODES, DiagnosticsLog, cpu_seconds, node_command,
@@ -173,7 +203,7 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
     from lidar_quality_ros.testing import RosHarness
 
     info = bag_info(bag)
-    wire = wiring(head_count(bag))
+    wire = wiring(head_count(bag), autoware)
     logs = out / "logs"
     logs.mkdir(parents=True, exist_ok=True)
     played = sorted({t for _, remaps in wire.values() for t in remaps.values()})
@@ -183,7 +213,8 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
                          "(reference_perception.cli bag / split)")
     from .process import OUTPUTS  # what the nodes publish (process_bag writes the same)
 
-    record = {topic: typ for outs in OUTPUTS.values() for topic, typ in outs}
+    outputs = autoware_outputs(OUTPUTS) if autoware else OUTPUTS
+    record = {topic: typ for outs in outputs.values() for topic, typ in outs}
     users = {t: sum(t in r.values() for _, r in wire.values()) for t in played}
     live: dict = {"nodes": {}}
     with RosHarness(num_threads=1) as ros:
@@ -273,6 +304,8 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print) -> dict:
     for name, (_, remaps) in wire.items():
         inputs = list(remaps.values())
         main = f"/{name}/{NODES[name][1]}"  # the node's main output
+        if autoware and main.endswith("output/detections"):
+            main = main.replace("output/detections", "output/objects")
         lat = latencies(pub_times, inputs, rec.received[main])
         frames_in = min(published.get(t, 0) for t in inputs)
         frames_out = rec.count(main)
@@ -510,7 +543,9 @@ def report_markdown(summary: dict, figs: list[Path]) -> str:
 
 
 def print_summary(s: dict) -> None:
-    print(f"\ndemo: {s['frames']} frames of {s['bag']}; report {s['report']}")
+    mode = (" (LMD and MIMO on Autoware DetectedObjects)" if s.get("mode") == "autoware"
+            else "")
+    print(f"\ndemo: {s['frames']} frames of {s['bag']}{mode}; report {s['report']}")
     for line in s["verdict"]["lines"] + [s["verdict"]["pictures"]]:
         print(f"demo: {line}")
     cpu = s.get("cpu_ms_per_frame") or {}
@@ -550,6 +585,9 @@ def main(argv=None) -> int:
                     help="perception bag, or a folder of them (the first is used)")
     ap.add_argument("--out", type=Path, default=Path("out/demo"))
     ap.add_argument("--rate", type=float, default=1.0, help="playback speed")
+    ap.add_argument("--autoware", action="store_true",
+                    help="LMD and MIMO read and write Autoware's DetectedObjects (the bag's "
+                    "detections converted once into <bag folder>_autoware)")
     ap.add_argument("--max-drop-fraction", type=float, default=0.05, metavar="F",
                     help=f"exit {EXIT_DROPPED} when a node drops more than this fraction of its "
                     "frames (default 0.05; every drop is reported)")
@@ -571,16 +609,22 @@ def main(argv=None) -> int:
         shutil.rmtree(out / "outputs")
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.monotonic()
+    played = bag
     try:
-        live = run_live(bag, out, rate=a.rate)
+        if a.autoware:
+            played = autoware_bag(bag)
+        live = run_live(played, out, rate=a.rate, autoware=a.autoware)
     except RuntimeError as e:
         print(f"demo: FAILED: {e}", file=sys.stderr)
         return EXIT_FAILED
     print("demo: evaluating the recorded outputs against the ground truth", flush=True)
     lms_s, mimo_s = _settings(live["params"])
-    ev = evaluate(bag, out / "outputs", lms_settings=lms_s, mimo_settings=mimo_s)
+    # inputs and ground truth from the original bag (the Autoware twin holds the same boxes)
+    ev = evaluate(bag, out / "outputs", lms_settings=lms_s, mimo_settings=mimo_s,
+                  autoware=a.autoware)
     q = ev.quality()
     summary = {"bag": str(bag), "frames": ev.frames, "rate": a.rate,
+               "mode": "autoware" if a.autoware else "vision_msgs", "played": str(played),
                "outputs_bag": str(out / "outputs"), "report": str(out / "report.md"),
                "player": {k: live["player"][k] for k in ("achieved_rate", "late_ms_p99",
                                                          "wall_s", "shifts", "shifted_ms")},

@@ -93,14 +93,17 @@ def _gt(gt_msg):
     return g.boxes[g.valid], [c for c, ok in zip(g.labels, g.valid) if ok]
 
 
-def lmd_rows(detections_msg, gt_msg, quality_msg) -> dict:
-    """Rows of one frame: the recorded quality of each input detection and its target."""
+def lmd_rows(detections_msg, gt_msg, quality_msg, *, index_ids: bool = False) -> dict:
+    """Rows of one frame: the recorded quality of each input detection and its target.
+    ``index_ids``: the node read the detections as Autoware objects (no ids: each one's
+    id is its index)."""
     from lidar_quality_core.boxes import detections_to_arrays
     from lidar_quality_core.detection_eval import match_frame
 
     d = detections_to_arrays(detections_msg)
     q = quality_msg.detections
-    if [x.detection_id for x in q] != list(d.ids) or \
+    ids = [str(i) for i in range(len(d.ids))] if index_ids else list(d.ids)
+    if [x.detection_id for x in q] != ids or \
             [x.detection_index for x in q] != list(range(len(d.ids))):
         raise Mismatch(f"LMD quality lists {len(q)} detections, the input {len(d.ids)} "
                        "(or other ids / order)")
@@ -145,14 +148,20 @@ def lms_rows(points_msg, segmentation_msg, points_gt_msg, segments_msg, settings
             "tp": iou_adj[keep] > 0, "segment_ids": sid, "result": res, "input": inp}
 
 
-def mimo_rows(head_msgs, variance_msgs, gt_msg, uncertainty_msg, settings) -> dict:
+def mimo_rows(head_msgs, variance_msgs, gt_msg, uncertainty_msg, settings, *,
+              index_ids: bool = False) -> dict:
     """Rows of one frame: the merge recomputed from the heads, checked against the
-    recorded ids, with the recorded confidence and predicted IoU."""
+    recorded ids, with the recorded confidence and predicted IoU. ``index_ids``: the node
+    read the heads as Autoware objects (a member's id is its index in its head)."""
     from lidar_quality_core.detection_eval import match_frame
     from mimo_ros.pipeline import frame_features
 
     frame = frame_features(head_msgs, variance_msgs, settings)
     ids = frame.merged_ids()
+    if index_ids:
+        m = frame.merge
+        ids = [f"{frame.heads_used[h]}:{r}" for h, r in zip(
+            m.member_head[m.top_member].tolist(), m.member_index[m.top_member].tolist())]
     c = uncertainty_msg.clusters
     if [x.detection_id for x in c] != list(ids):
         raise Mismatch(f"MIMO recorded {len(c)} merged boxes, the heads give {len(ids)} "
@@ -198,14 +207,15 @@ class Evaluation:
 
 def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=None,
              mimo_settings=None, lms_separate: bool = True, example_frame: int | None = None,
-             progress: bool = False) -> Evaluation:
+             progress: bool = False, autoware: bool = False) -> Evaluation:
     """Join the recorded outputs with the inputs and ground truth of ``perception_bag``
     (``outputs_bag`` None: the outputs are in it too) and collect every method's rows.
 
     The rows of one frame are kept for plots (``ev.example``): the frame nearest to
     ``example_frame`` (default: the middle one; ties: the earlier) that every method of
     ``methods`` answered with a matching output, so that the pictures show all of them
-    on one frame. No such frame: ``ev.example`` is empty and ``ev.example_frame`` None."""
+    on one frame. No such frame: ``ev.example`` is empty and ``ev.example_frame`` None.
+    ``autoware``: LMD and MIMO read the detections as Autoware objects (ids = indices)."""
     from lidar_quality_core.progress import Progress
     from lidar_quality_ros.bag_io import bag_info
     from lidar_quality_ros.perception_bag import perception_frames
@@ -247,11 +257,11 @@ def evaluate(perception_bag, outputs_bag=None, *, methods=METHODS, lms_settings=
             r.frames_out += 1
             try:
                 if m == "lmd":
-                    got = lmd_rows(*args, rec)
+                    got = lmd_rows(*args, rec, index_ids=autoware)
                 elif m == "lms":
                     got = lms_rows(*args, rec, lms_settings, separate=lms_separate)
                 else:
-                    got = mimo_rows(*args, rec, mimo_settings)
+                    got = mimo_rows(*args, rec, mimo_settings, index_ids=autoware)
             except Mismatch as e:
                 r.mismatched += 1
                 if len(r.mismatch_reasons) < 5:

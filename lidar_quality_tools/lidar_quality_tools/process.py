@@ -164,9 +164,13 @@ def _lmd(p: dict, topics: dict) -> Runner:
     from lmd_ros.pipeline import LmdProcessor
 
     c = node_config("lmd", p)
+    from lidar_quality_core.thresholds import from_parameters as thresholds_from
+
     proc = LmdProcessor(c.settings, _models("lmd", c), min_confidence=c.min_confidence,
                         transform_inputs=c.transform_inputs,
-                        transform_tolerance=c.transform_tolerance)
+                        transform_tolerance=c.transform_tolerance,
+                        thresholds=thresholds_from(c.min_confidence, c.class_min_confidence,
+                                                   c.range_min_confidence))
     mode = c.settings.proposal_mode
     keys = ["points"] + (["detections"] if mode != "exact" else []) + (
         ["proposals"] if mode != "none" else [])
@@ -192,9 +196,13 @@ def _mimo(p: dict, names: dict) -> Runner:
 
     c = node_config("mimo", p)
     s = c.settings
+    from lidar_quality_core.thresholds import from_parameters as thresholds_from
+
     proc = MimoProcessor(s, _models("mimo", c), scores=c.output_scores,
                          transform_inputs=c.transform_inputs,
-                         transform_tolerance=c.transform_tolerance)
+                         transform_tolerance=c.transform_tolerance,
+                         thresholds=thresholds_from(c.min_confidence, c.class_min_confidence,
+                                                    c.range_min_confidence))
     K = s.num_heads
     topics = {f"head_{k}": topic_of(f"head_{k}", names) for k in range(K)}
     if c.use_variances:

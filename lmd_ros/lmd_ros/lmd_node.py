@@ -18,14 +18,23 @@ Outputs (header copied from the input detections, or the proposals in exact mode
   the class distribution keeps its shape (a top score <= 0 cannot be scaled: the top
   hypothesis is set to the confidence). A detection whose box is invalid (non-finite,
   size <= 0, no hypothesis, class not in ``class_names``) is kept with NaN scores.
-  The only way a detection disappears is ``min_confidence`` > 0: detections below it, or
-  with NaN confidence, are not published (they stay in ``output/quality``).
+  The only way a detection disappears is a threshold: ``min_confidence`` > 0,
+  ``class_min_confidence`` (per class), ``range_min_confidence`` (per range bin);
+  detections below the largest that applies, or with NaN confidence, are not published
+  (they stay in ``output/quality``; counted as ``removed.<class>.<bin>``).
 * ``output/quality``: DetectionQualityArray, one entry per scored detection (filtered or
   not): index and id, class, original score (top hypothesis before re-scoring),
   confidence, predicted IoU (NaN for invalid boxes), and the two model ids.
 * ``output/markers``: boxes of the published detections coloured by confidence, labelled
   ``"<class> c=0.87 iou=0.62"`` (``publish_markers``; built only while subscribed).
 * ``/diagnostics``.
+
+Autoware (``input_type: autoware``): ``input/detections`` and ``input/proposals`` are
+autoware_perception_msgs/DetectedObjects (classes by ``autoware_class_map``), and
+``output/objects`` (DetectedObjects) replaces ``output/detections``: the same objects in
+the same order, ``existence_probability`` = meta confidence (``existence_fallback`` when
+there is none, counted as ``detections.fallback``), classification probabilities scaled
+as the hypothesis scores above (``lidar_quality_core.autoware_objects``).
 
 The frame work is :class:`lmd_ros.pipeline.LmdProcessor` (no ROS); this shell declares
 parameters, loads the models (refusing to start when they are missing or invalid),
@@ -50,6 +59,7 @@ from __future__ import annotations
 
 from lidar_quality_core.autoware_objects import AutowareDetections, parse_class_map
 from lidar_quality_core.detection_cdr import decode_detection_array
+from lidar_quality_core.thresholds import from_parameters as thresholds_from
 from lidar_quality_msgs.msg import DetectionQualityArray
 from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.runner import run_node
@@ -71,7 +81,10 @@ class LmdNode(QualityNode):
         self.processor = LmdProcessor(p.settings, self.models, min_confidence=p.min_confidence,
                                       transforms=transforms,
                                       transform_inputs=p.transform_inputs,
-                                      existence_fallback=p.existence_fallback)
+                                      existence_fallback=p.existence_fallback,
+                                      thresholds=thresholds_from(p.min_confidence,
+                                                                 p.class_min_confidence,
+                                                                 p.range_min_confidence))
 
         mode = p.settings.proposal_mode
         self.autoware = p.input_type == "autoware"

@@ -58,7 +58,8 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_quality_core.autoware_objects import (DEFAULT_CLASS_MAP, AutowareDetections,
+from lidar_quality_core.autoware_objects import (AutowareDetections, class_map_param,
+                                                 existence_fallback_param, input_type_param,
                                                  kept_objects, score_objects)
 from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt_issue
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
@@ -68,6 +69,8 @@ from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import check_fields, group, param
 from lidar_quality_core.pointcloud import CloudFormatError, PaddingNote, xyz_intensity
+from lidar_quality_core.thresholds import (ConfidenceThresholds, class_thresholds_param,
+                                           range_thresholds_param)
 from lidar_quality_core.transforms import Transform, input_transforms, transform_tolerance_param
 from lidar_quality_core.lmd import features
 from lidar_quality_core.lmd.proposal_sets import nms_preimages
@@ -133,24 +136,15 @@ class LmdParameters:
         0.0, "Publish on output/detections only detections with a meta confidence >= this "
         "(and not NaN); 0 keeps every detection. output/quality always lists all of them.",
         min_value=0.0, max_value=1.0, live=True)
+    class_min_confidence: str = class_thresholds_param("output/detections (output/objects)")
+    range_min_confidence: str = range_thresholds_param("output/detections (output/objects)")
     publish_markers: bool = param(
         True, "Publish output/markers (boxes coloured by confidence; built only while someone "
         "subscribes).")
-    input_type: str = param(
-        "vision_msgs", "Message type of input/detections and input/proposals and of the "
-        "re-scored output: 'vision_msgs' (Detection3DArray in, output/detections) or "
-        "'autoware' (autoware_perception_msgs/DetectedObjects in, output/objects with the meta "
-        "confidence as existence_probability).", choices=("vision_msgs", "autoware"))
-    autoware_class_map: str = param(
-        " ".join(f"{k}:{v}" for k, v in DEFAULT_CLASS_MAP.items()),
-        "input_type autoware: Autoware classification label -> model class name "
-        "('LABEL:name', separated by spaces or commas); objects whose top label is not "
-        "mapped to one of class_names pass through unscored (counted as detections.invalid).")
-    existence_fallback: float = param(
-        -1.0, "input_type autoware: existence_probability of an object without a meta "
-        "confidence (invalid box, unmapped class): -1 keeps the detector's own (0 if it is "
-        "not finite), else this value. Counted as detections.fallback; NaN never goes out.",
-        min_value=-1.0, max_value=1.0)
+    input_type: str = input_type_param("input/detections and input/proposals",
+                                       "output/detections")
+    autoware_class_map: str = class_map_param()
+    existence_fallback: float = existence_fallback_param("the detector's own")
     transform_inputs: bool = param(
         True, "Transform input/detections and input/proposals into input/points' frame "
         "(/tf_static, /tf) when their frame_id differs; a frame whose transform is missing is "
@@ -415,6 +409,8 @@ class LmdOutputs:
     errors: frozenset = frozenset()               # keys of ``issues`` at level ERROR
     #: Autoware input: objects whose existence_probability is the fallback (else None)
     fallback: int | None = None
+    #: detections not published, by "removed.<class>.<range bin>" (thresholds)
+    removed: dict = field(default_factory=dict)
 
     @property
     def messages(self) -> dict:
@@ -429,7 +425,8 @@ class LmdOutputs:
                 "points.invalid": f.points_in - f.n_points,
                 "detections.in": len(self.kept), "detections.out": int(self.kept.sum()),
                 "detections.invalid": int((~self.frame.valid).sum()),
-                **({} if self.fallback is None else {"detections.fallback": self.fallback})}
+                **({} if self.fallback is None else {"detections.fallback": self.fallback}),
+                **self.removed}
 
 
 class LmdProcessor:
@@ -437,7 +434,9 @@ class LmdProcessor:
 
     ``models``: a ``MetaModels`` loaded with ``settings.feature_names()``.
     ``min_confidence``: detections with a confidence below it (or NaN, when > 0) are not
-    published on output/detections; 0 keeps all. ``transform_inputs``: move detections and
+    published on output/detections; 0 keeps all. ``thresholds``: per-class and per-range
+    thresholds besides (``thresholds.ConfidenceThresholds``; its floor is replaced by
+    ``min_confidence``, which may change between frames). ``transform_inputs``: move detections and
     proposals in another frame into the cloud's with ``transforms`` (a
     ``transforms.TransformBuffer``, a ``lookup(target, source, stamp_ns)`` callable, or
     None: no transform known, such frames are dropped); false: frames taken as equal.
@@ -446,7 +445,8 @@ class LmdProcessor:
 
     def __init__(self, settings: LmdSettings, models, *, min_confidence: float = 0.0,
                  transforms=None, transform_inputs: bool = True,
-                 transform_tolerance: float = 0.05, existence_fallback: float = -1.0):
+                 transform_tolerance: float = 0.05, existence_fallback: float = -1.0,
+                 thresholds: ConfidenceThresholds | None = None):
         settings.validate()
         if tuple(models.feature_names) != settings.feature_names():
             raise ValueError("models were loaded for another feature schema than the settings'")
@@ -455,6 +455,7 @@ class LmdProcessor:
         self.settings = settings
         self.models = models
         self.min_confidence = float(min_confidence)
+        self.thresholds = thresholds or ConfidenceThresholds()
         #: Autoware output: existence_probability without a confidence (< 0: the detector's)
         self.existence_fallback = float(existence_fallback)
         self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
@@ -491,7 +492,8 @@ class LmdProcessor:
                                intensity=self.intensity)
         conf, iou = self.models.predict(frame.features)
         n = len(frame.detections)
-        kept = (conf >= self.min_confidence) if self.min_confidence > 0 else np.ones(n, bool)
+        kept, removed = replace(self.thresholds, floor=self.min_confidence).keep(
+            conf, frame.detections.labels, frame.detections.boxes)
         header = frame.header
         dets = frame.detections
         src = frame.source
@@ -537,7 +539,8 @@ class LmdProcessor:
         return LmdOutputs(frame, conf, iou, kept, det_msg, quality, mk, issues,
                           ([self.intensity.note] if self.intensity.note else [])
                           + self._padding(frame.n_padding, frame.points_in),
-                          {"intensity_scale": self.intensity.decided}, fallback=fallback)
+                          {"intensity_scale": self.intensity.decided}, fallback=fallback,
+                          removed=removed)
 
     def markers(self, frame: LmdFrame, conf, iou, kept):
         """Boxes of the published detections coloured by confidence, labelled

@@ -14,6 +14,13 @@ only while someone subscribes),
 ``/diagnostics``. The heads' boxes are merged (clusters of heads), so the output has one
 detection per cluster, not per input box; unusable input boxes are left out and reported.
 
+Autoware (``input_type: autoware``): the heads are autoware_perception_msgs/DetectedObjects
+(classes by ``autoware_class_map``) and ``output/objects`` (DetectedObjects) replaces
+``output/detections``: one object per merged detection, ``existence_probability`` = meta
+confidence (``existence_fallback`` when there is none, counted as
+``detections.fallback``), the classification as the scores above, the merged x / y / z /
+yaw variances on ``pose_with_covariance`` with ``has_position_covariance``.
+
 The heads are subscribed raw and decoded from their bytes
 (``lidar_quality_core.detection_cdr``, same rules as ``boxes.detections_to_arrays``):
 rclpy's deserialization of a 100-box head with 4 hypotheses per box costs far more than
@@ -40,7 +47,10 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
+from lidar_quality_core.autoware_objects import (AutowareDetections, AutowareOutput,
+                                                 parse_class_map)
 from lidar_quality_core.detection_cdr import decode_detection_array
+from lidar_quality_core.thresholds import from_parameters as thresholds_from
 from lidar_quality_msgs.msg import BoxVarianceArray, ClusterUncertaintyArray
 from lidar_quality_ros.node_base import QualityNode
 from lidar_quality_ros.runner import run_node
@@ -60,12 +70,24 @@ class MimoNode(QualityNode):
         self.head_timeout = p.head_timeout
         self.models = load_models(p, warn=self.get_logger().warning)
         transforms = self.listen_transforms(p.transform_inputs, p.transform_tolerance)
+        self.autoware = (AutowareOutput(parse_class_map(p.autoware_class_map),
+                                        p.existence_fallback)
+                         if p.input_type == "autoware" else None)
         self.processor = MimoProcessor(self.settings, self.models, scores=p.output_scores,
                                        transforms=transforms,
-                                       transform_inputs=p.transform_inputs)
+                                       transform_inputs=p.transform_inputs,
+                                       autoware=self.autoware,
+                                       thresholds=thresholds_from(p.min_confidence,
+                                                                  p.class_min_confidence,
+                                                                  p.range_min_confidence))
 
         K = self.settings.num_heads
-        topics = [(Detection3DArray, f"input/head_{k}") for k in range(K)]
+        if self.autoware is not None:
+            from autoware_perception_msgs.msg import DetectedObjects
+            head_type, out_name = DetectedObjects, "output/objects"
+        else:
+            head_type, out_name = Detection3DArray, "output/detections"
+        topics = [(head_type, f"input/head_{k}") for k in range(K)]
         if self.use_variances:
             topics += [(BoxVarianceArray, f"input/head_{k}/variance") for k in range(K)]
         if self.settings.use_points:
@@ -76,15 +98,17 @@ class MimoNode(QualityNode):
             slop_ns=int(round(sync["slop_s"] * 1e9)) if sync["mode"] == "approximate" else 0,
             window=max(64, sync["queue_size"] * len(topics)))
         self._arrival_lock = threading.Lock()
-        self.create_output(Detection3DArray, "output/detections")
+        self.create_output(head_type, out_name)
         self.create_output(ClusterUncertaintyArray, "output/uncertainty")
         self.create_markers_output(p.publish_markers, MarkerArray)
         self._stopped_since: dict[int, float] = {}
         # heads arrive as bytes, decoded straight to arrays: rclpy's own deserialization
         # of a 100-box head (400 hypotheses) costs tens of ms per message
+        # (Autoware's DetectedObjects are taken as messages and read in process())
         self.start_inputs(
             topics, sync=sync, on_arrival=self._on_arrival,
-            raw_decoders={f"input/head_{k}": decode_detection_array for k in range(K)},
+            raw_decoders={} if self.autoware is not None else {
+                f"input/head_{k}": decode_detection_array for k in range(K)},
             hints={**{f"input/head_{k}": f"set num_heads: {k}" for k in range(1, K)},
                    **{f"input/head_{k}/variance": "set use_variances: false" for k in range(K)},
                    "input/points": "set use_points: false (with the models trained without "
@@ -138,7 +162,11 @@ class MimoNode(QualityNode):
         K = self.settings.num_heads
         variances = messages[K:2 * K] if self.use_variances else None
         cloud = messages[-1] if self.settings.use_points else None
-        return self.processor.process(messages[:K], variances, cloud, markers=markers)
+        heads = messages[:K]
+        if self.autoware is not None:
+            heads = [None if h is None else AutowareDetections.read(h, self.autoware.class_map)
+                     for h in heads]
+        return self.processor.process(heads, variances, cloud, markers=markers)
 
 
 def main(args=None) -> int:

@@ -51,6 +51,9 @@ from typing import Sequence
 
 import numpy as np
 
+from lidar_quality_core.autoware_objects import (AutowareOutput, class_map_param,
+                                                 existence_fallback_param, input_type_param,
+                                                 objects_from_boxes)
 from lidar_quality_core.box_geometry import as_boxes, inbox_point_stats
 from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
                                       detections_to_arrays, tilt_issue)
@@ -60,6 +63,8 @@ from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
+from lidar_quality_core.thresholds import (ConfidenceThresholds, class_thresholds_param,
+                                           range_thresholds_param)
 from lidar_quality_core.transforms import Transform, input_transforms, transform_tolerance_param
 
 from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, MergeResult, merge_heads
@@ -155,7 +160,17 @@ class MimoParameters:
         0.5, "Seconds (of stamp time) an input may send nothing while the others arrive before "
         "the node merges without it (warning in /diagnostics); it rejoins with its next "
         "message.", min_value=1e-3)
+    min_confidence: float = param(
+        0.0, "Publish on output/detections (output/objects) only merged detections with a "
+        "meta confidence >= this (and not NaN); 0 keeps every one. output/uncertainty "
+        "always lists all of them.", min_value=0.0, max_value=1.0)
+    class_min_confidence: str = class_thresholds_param("output/detections (output/objects)")
+    range_min_confidence: str = range_thresholds_param("output/detections (output/objects)")
     publish_markers: bool = param(True, "Publish output/markers (boxes coloured by confidence).")
+    input_type: str = input_type_param("input/head_k", "output/detections")
+    autoware_class_map: str = class_map_param()
+    existence_fallback: float = existence_fallback_param(
+        "the merged class score (the top merged class probability)")
     transform_inputs: bool = param(
         True, "Transform heads (and input/points) whose frame_id differs from the first head's "
         "into that frame (/tf_static, /tf); a frame whose transform is missing is dropped "
@@ -467,13 +482,18 @@ class MimoOutput:
     frame: MimoFrame
     confidence: np.ndarray        # (C,) meta confidence
     predicted_iou: np.ndarray     # (C,)
-    detections: object            # vision_msgs/Detection3DArray (or its CDR bytes)
+    detections: object            # vision_msgs/Detection3DArray (or its CDR bytes), or
+    #                               autoware_perception_msgs/DetectedObjects
     uncertainty: object           # lidar_quality_msgs/ClusterUncertaintyArray
+    fallback: int | None = None   # DetectedObjects: objects given the fallback existence
+    kept: np.ndarray | None = None  # (C,) published on the detections output (thresholds)
+    removed: dict = field(default_factory=dict)  # "removed.<class>.<bin>" -> count
 
 
 def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
                     scores: str = "confidence", confidence_model_id: str = "",
-                    iou_model_id: str = "", serialized: bool = False):
+                    iou_model_id: str = "", serialized: bool = False,
+                    autoware: AutowareOutput | None = None, kept=None):
     """``(Detection3DArray, ClusterUncertaintyArray)`` of the merged detections; with
     ``serialized`` the detections as CDR bytes (``detection_cdr.encode_detections``, the
     same message; a publisher takes them as they are, ~5x cheaper than building and
@@ -487,6 +507,14 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
     ``"merged"``: the merged distribution as it is. Where the heads' predicted variances
     are unknown (no variance input) the covariance is the epistemic variance alone, a lower
     bound (ATV in the uncertainty message is then NaN).
+
+    ``autoware``: the detections as autoware_perception_msgs/DetectedObjects instead
+    (``autoware_objects.objects_from_boxes``: existence_probability = confidence, the same
+    class scores, x / y / z / yaw variances on the pose covariance); the detections
+    element is then ``(DetectedObjects, objects given the fallback existence)``.
+    ``kept`` (C,) bool: only those go into the detections message (thresholds); the
+    uncertainty message lists every merged detection (``detection_index`` = its index among
+    them, ``detection_id`` = the published detection's id).
     """
     from lidar_quality_msgs.msg import ClusterUncertainty, ClusterUncertaintyArray
 
@@ -511,12 +539,21 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
                                     pred[:, xyzyaw])
     ids = frame.merged_ids()
     labels = frame.class_labels()
-    if serialized:
-        dets = encode_detections(header, m.boxes, names, fg, ids=ids, covariance_diagonal=cov)
+    r = np.arange(len(m)) if kept is None else np.flatnonzero(kept)
+    boxes, fg_r, cov_r, ids_r = m.boxes[r], fg[r], cov[r], [ids[i] for i in r.tolist()]
+    if autoware is not None:
+        own = autoware.existence_fallback < 0  # the merged score, as on the vision output
+        dets = objects_from_boxes(
+            header, boxes, names, fg_r, conf[r], variance=cov_r[:, [0, 1, 2, 5]],
+            fallback=m.scores[r] if own else np.full(len(r), autoware.existence_fallback),
+            class_map=autoware.class_map)
+    elif serialized:
+        dets = encode_detections(header, boxes, names, fg_r, ids=ids_r, covariance_diagonal=cov_r)
     else:
-        dets = arrays_to_detections(header, m.boxes, labels, m.scores, ids=ids,
-                                    class_scores={n: fg[:, c] for c, n in enumerate(names)},
-                                    covariance_diagonal=cov)
+        dets = arrays_to_detections(header, boxes, [labels[i] for i in r.tolist()], m.scores[r],
+                                    ids=ids_r,
+                                    class_scores={n: fg_r[:, c] for c, n in enumerate(names)},
+                                    covariance_diagonal=cov_r)
     size = st.cluster_size.tolist()
     se, ae, mi = (st.shannon_entropy.tolist(), st.aleatoric_entropy.tolist(),
                   st.mutual_information.tolist())
@@ -538,17 +575,25 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
 def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, models, *,
                   cloud_msg=None, scores: str = "confidence",
                   serialized: bool = False, transforms: dict | None = None,
-                  intensity: IntensityScale | None = None) -> MimoOutput:
+                  intensity: IntensityScale | None = None,
+                  autoware: AutowareOutput | None = None,
+                  thresholds: ConfidenceThresholds | None = None) -> MimoOutput:
     """The node's work for one frame, decode to output messages: ``frame_features``,
-    ``models.predict`` (a ``MetaModels``), ``output_messages`` (``serialized``: the
-    detections as bytes)."""
+    ``models.predict`` (a ``MetaModels``), ``thresholds`` (what is published),
+    ``output_messages`` (``serialized``: the detections as bytes)."""
     frame = frame_features(head_msgs, variance_msgs, settings, cloud_msg,
                            transforms=transforms, intensity=intensity)
     conf, iou = models.predict(frame.features)
+    kept, removed = (thresholds or ConfidenceThresholds()).keep(
+        conf, frame.class_labels(), frame.merge.boxes)
     dets, unc = output_messages(header, frame, conf, iou, scores=scores,
                                 confidence_model_id=models.confidence_model_id,
-                                iou_model_id=models.iou_model_id, serialized=serialized)
-    return MimoOutput(frame, conf, iou, dets, unc)
+                                iou_model_id=models.iou_model_id, serialized=serialized,
+                                autoware=autoware, kept=kept)
+    n_fallback = None
+    if autoware is not None:
+        (dets, n_fallback) = dets
+    return MimoOutput(frame, conf, iou, dets, unc, n_fallback, kept, dict(removed))
 
 
 class NoHeadError(FrameRejected):
@@ -572,8 +617,8 @@ class MimoFrameOutputs:
 
     @property
     def messages(self) -> dict:
-        return {"output/detections": self.out.detections,
-                "output/uncertainty": self.out.uncertainty}
+        out = "output/detections" if self.out.fallback is None else "output/objects"
+        return {out: self.out.detections, "output/uncertainty": self.out.uncertainty}
 
 
 class MimoProcessor:
@@ -595,7 +640,8 @@ class MimoProcessor:
 
     def __init__(self, settings: MimoSettings, models, *, scores: str = "confidence",
                  transforms=None, transform_inputs: bool = True,
-                 transform_tolerance: float = 0.05):
+                 transform_tolerance: float = 0.05, autoware: AutowareOutput | None = None,
+                 thresholds: ConfidenceThresholds | None = None):
         settings.validate()
         if scores not in OUTPUT_SCORES:
             raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
@@ -604,6 +650,10 @@ class MimoProcessor:
         self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
         #: for whoever builds the buffer (process_bag: one per bag)
         self.transform_tolerance = float(transform_tolerance)
+        #: DetectedObjects output (Autoware) instead of Detection3DArray
+        self.autoware = autoware
+        #: what is published on the detections output (min_confidence, per class / range)
+        self.thresholds = thresholds
 
     def process(self, heads: Sequence, variances: Sequence | None = None, cloud=None, *,
                 markers: bool = False) -> MimoFrameOutputs:
@@ -643,19 +693,24 @@ class MimoProcessor:
         self.intensity.note = None
         out = process_frame(header, list(heads), variances, s, self.models, cloud_msg=xyz,
                             scores=self.scores, serialized=True, transforms=moved,
-                            intensity=self.intensity)
+                            intensity=self.intensity, autoware=self.autoware,
+                            thresholds=self.thresholds)
         if out.frame.issues:
             issues["heads"] = "; ".join(out.frame.issues)
         mk = None
         if markers:
             from lidar_quality_ros.markers import box_markers
 
+            r = np.flatnonzero(out.kept)  # the published detections
             labels = out.frame.class_labels()
-            texts = [f"{c} {p:.2f}" for c, p in zip(labels, out.confidence.tolist())]
-            mk = box_markers(header, out.frame.merge.boxes, out.confidence, texts, ns="mimo")
+            texts = [f"{labels[i]} {out.confidence[i]:.2f}" for i in r.tolist()]
+            mk = box_markers(header, out.frame.merge.boxes[r], out.confidence[r], texts,
+                             ns="mimo")
         counts = {"boxes.in": sum(len(a) for a in out.frame.arrays),
-                  "detections.out": len(out.frame),
-                  "frames_partial": int(len(present) < len(heads))}
+                  "detections.out": int(out.kept.sum()),
+                  "frames_partial": int(len(present) < len(heads)),
+                  **({} if out.fallback is None else {"detections.fallback": out.fallback}),
+                  **out.removed}
         values = {"intensity_scale": self.intensity.decided} if s.use_points else {}
         return MimoFrameOutputs(out, issues, counts, mk,
                                 [self.intensity.note] if self.intensity.note else [], values)

@@ -88,3 +88,26 @@ def test_scores_written_back_and_nan_never_out():
     assert all(abs(o.existence_probability - 0.1) < 1e-7 for o in fixed.objects)
     with pytest.raises(ValueError, match="2 confidences for 5 objects"):
         score_objects(_scene(), [0.1, 0.2])
+
+
+def test_objects_from_new_boxes():
+    from lidar_quality_core.autoware_objects import objects_from_boxes
+    boxes = np.array([[1, 2, 0.5, 4, 2, 1.5, 0.4], [5, -1, 0.4, 0.8, 0.7, 1.8, -2.0]])
+    probs = np.array([[0.6, 0.1, 0.05], [0.05, 0.3, 0.5]])  # car, bus-like "van", pedestrian
+    var = np.array([[0.1, 0.2, 0.05, 0.01], [np.nan, 0.1, 0.1, 0.02]])
+    msg, n = objects_from_boxes(Header(frame_id="base_link"), boxes, ["car", "van", "pedestrian"],
+                                probs, [0.9, np.nan], fallback=[0.6, 0.5], variance=var)
+    assert n == 1 and msg.header.frame_id == "base_link"
+    a, b = msg.objects
+    np.testing.assert_allclose([a.existence_probability, b.existence_probability], [0.9, 0.5],
+                               rtol=1e-6)
+    # highest first; "van" has no Autoware label: UNKNOWN (0)
+    assert [c.label for c in a.classification] == [1, 0, 7]
+    assert [c.label for c in b.classification] == [7, 0, 1]
+    k = a.kinematics
+    np.testing.assert_allclose(np.asarray(k.pose_with_covariance.covariance)[[0, 7, 14, 35]],
+                               var[0])
+    assert k.has_position_covariance and not b.kinematics.has_position_covariance
+    assert k.orientation_availability == k.SIGN_UNKNOWN
+    back = objects_to_arrays(msg)
+    np.testing.assert_allclose(back.boxes, boxes, atol=1e-9)

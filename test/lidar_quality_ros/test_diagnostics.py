@@ -76,3 +76,28 @@ def test_processing_slower_than_the_input_warns(ros):
         time.sleep(0.01)
     s = d.status()
     assert s.level == WARN and "cannot keep up" in s.message, s.message
+
+
+def test_processing_time_limits_warn_and_error(ros):
+    """processing_warn_ms / processing_error_ms (Autoware's processing-time diagnostics):
+    the median of the recent frames against each limit; off (0) by default."""
+    node = ros.start(_DiagNode)
+    d = NodeDiagnostics(node, "timed", period_s=0, processing_warn_ms=20.0,
+                        processing_error_ms=50.0)
+    for ms in (5.0, 8.0, 6.0):
+        d.frame_processed(ms)
+    s = d.status()
+    assert s.level == OK and _values(s)["processing_ms_recent"] == "6.000", s.message
+    for _ in range(6):
+        d.frame_processed(30.0)
+    s = d.status()
+    assert s.level == WARN and "above processing_warn_ms = 20 ms" in s.message, s.message
+    for _ in range(20):
+        d.frame_processed(70.0)
+    s = d.status()
+    assert s.level == ERROR and "above processing_error_ms = 50 ms" in s.message, s.message
+    assert "processing_warn_ms" not in s.message  # the worse limit only
+    off = NodeDiagnostics(node, "untimed", period_s=0)
+    for _ in range(20):
+        off.frame_processed(70.0)
+    assert off.status().level == OK and "processing_ms_recent" not in _values(off.status())

@@ -36,9 +36,14 @@ def table_line(stdout: str) -> int:
     return next(i for i, line in enumerate(stdout.splitlines()) if line.startswith("node "))
 
 
-def test_demo_end_to_end(bags, tmp_path):
-    out = tmp_path / "demo"
-    r = demo("--bag", bags, "--out", out, "--rate", 0.5)   # half speed: drops unlikely
+@pytest.fixture(scope="module")
+def vision_run(bags, tmp_path_factory):
+    out = tmp_path_factory.mktemp("vision") / "demo"
+    return demo("--bag", bags, "--out", out, "--rate", 0.5), out   # half speed: drops unlikely
+
+
+def test_demo_end_to_end(vision_run):
+    r, out = vision_run
     s = json.loads((out / "summary.json").read_text())
     # 0 unless a node dropped a frame on a loaded machine: then 3, said first
     dropped = [n for n, v in s["nodes"].items() if v["dropped"]]
@@ -78,6 +83,30 @@ def test_demo_end_to_end(bags, tmp_path):
                 "lms_segmentation_frame", "latency"):
         assert (out / f"{png}.png").stat().st_size > 1000, png
         assert f"({png}.png)" in (out / "report.md").read_text()
+
+
+def test_demo_in_autoware_mode_gives_the_same_quality(bags, vision_run, tmp_path):
+    """Acceptance (issue 19): make demo AUTOWARE=1: the bag's detections converted once to
+    DetectedObjects (beside it), LMD and MIMO reading and writing them, the same quality
+    figures as the vision_msgs run (scores travel as float32 there)."""
+    out = tmp_path / "demo_autoware"
+    r = demo("--bag", bags, "--out", out, "--rate", 0.5, "--autoware")
+    s = json.loads((out / "summary.json").read_text())
+    assert r.returncode in (EXIT_OK, EXIT_DROPPED), r.stdout + r.stderr
+    assert s["mode"] == "autoware" and "Autoware DetectedObjects" in r.stdout
+    twin = bags.parent / f"{bags.name}_autoware" / "seq_00"
+    assert s["played"] == str(twin)
+    assert bag_info(twin).topics["/perception/head_0"].msgtype == \
+        "autoware_perception_msgs/msg/DetectedObjects"
+    info = bag_info(out / "outputs")
+    vision = json.loads((vision_run[1] / "summary.json").read_text())
+    for node in ("lmd", "mimo"):
+        v, w = s["nodes"][node], vision["nodes"][node]
+        assert v["mismatched"] == 0 and v["frames_out"] > 0, v
+        assert info.topics[f"/{node}/output/objects"].count == v["frames_out"]
+        if v["frames_out"] == w["frames_out"] == N_FRAMES:  # both answered every frame
+            for k in ("n", "auroc", "ece", "r2", "auroc_baseline"):
+                assert v[k] == pytest.approx(w[k], abs=1e-4), (node, k, v[k], w[k])
 
 
 def malformed_middle_cloud(bag, dst):

@@ -32,7 +32,8 @@ from visualization_msgs.msg import MarkerArray
 
 PARAMS = ("proposal_mode", "classifier_path", "regressor_path", "iou_threshold",
           "proposal_score_threshold", "nms_iou_threshold", "nms_score_threshold",
-          "class_names", "min_confidence", "publish_markers", "input_type",
+          "class_names", "min_confidence", "class_min_confidence", "range_min_confidence",
+          "publish_markers", "input_type",
           "autoware_class_map", "existence_fallback", "transform_inputs",
           "transform_tolerance", "sync_mode", "sync_slop",
           "sync_queue_size", "processing_queue_size", "diagnostics_period",
@@ -360,8 +361,9 @@ def test_autoware_objects_in_base_link(ros, models_dir):
         np.testing.assert_allclose([e.confidence for e in q.detections], conf, rtol=0, atol=1e-9)
         np.testing.assert_allclose([e.predicted_iou for e in q.detections], iou, rtol=0,
                                    atol=1e-9)
-        # float32 on the wire; no confidence (invalid box): the detector's own 0.5, never NaN
-        want = np.where(np.isnan(conf), 0.5, conf)
+        # float32 on the wire; no confidence (invalid box): the detector's own, never NaN
+        own = [o.existence_probability for o in sent.objects]
+        want = np.where(np.isnan(conf), own, conf)
         exist = np.array([o.existence_probability for o in got.objects])
         np.testing.assert_allclose(exist, want, rtol=1e-6, atol=1e-7)
         for o, s, c in zip(got.objects, sent.objects, conf.tolist()):
@@ -376,6 +378,38 @@ def test_autoware_objects_in_base_link(ros, models_dir):
     assert wait_until(lambda: diag_values(node.diag.status()).get("detections.fallback")
                       == str(int(np.isnan(allc).sum())))
     assert node.diag.dropped == 0
+
+
+def test_autoware_launch_and_params_files(ros, models_dir):
+    """config/lmd_node_autoware.yaml on top of lmd_node.yaml, with the launch file's
+    remappings: DetectedObjects from Autoware's CenterPoint topic and the concatenated
+    cloud in, the scored objects out, processing-time limits set."""
+    import ast
+
+    from autoware_perception_msgs.msg import DetectedObjects
+    from node_shell_checks import WS_INSTALL
+
+    share = WS_INSTALL / "lmd_ros" / "share" / "lmd_ros"
+    launch = ast.parse((share / "launch" / "lmd_autoware.launch.py").read_text())
+    consts = {n.value for n in ast.walk(launch) if isinstance(n, ast.Constant)}
+    assert {"lmd_node.yaml", "lmd_node_autoware.yaml", "input/detections", "input/points",
+            "output/objects", "/sensing/lidar/concatenated/pointcloud"} <= consts, consts
+    det = "/perception/object_recognition/detection/centerpoint/objects"
+    args = ["--ros-args", "--params-file", str(share / "config" / "lmd_node.yaml"),
+            "--params-file", str(share / "config" / "lmd_node_autoware.yaml"),
+            "-r", f"input/detections:={det}",
+            "-r", "input/points:=/sensing/lidar/concatenated/pointcloud",
+            "-r", f"output/objects:={det}_scored"]
+    p = model_params(models_dir, "none")
+    node = ros.start(LmdNode, parameters={k: v for k, v in p.items() if k != "proposal_mode"},
+                     cli_args=args)
+    assert node.get_parameter("input_type").value == "autoware"
+    assert node.get_parameter("proposal_mode").value == "none"
+    assert node.get_parameter("processing_warn_ms").value == 50.0
+    subs = {s.topic_name: s.msg_type for s in node.subscriptions}
+    assert subs[det] is DetectedObjects and "/sensing/lidar/concatenated/pointcloud" in subs
+    pubs = {p.topic_name: p.msg_type for p in node.publishers}
+    assert pubs[f"{det}_scored"] is DetectedObjects
 
 
 def test_autoware_class_map_refused_when_malformed(ros, models_dir):

@@ -163,7 +163,9 @@ def test_parameters_and_inputs(ros, model_dir):
     assert_declared_with_descriptions(node, {
         "num_heads", "eps", "voting", "min_cluster_size", "class_aware", "temperature",
         "use_variances", "use_points", "head_timeout", "classifier_path", "regressor_path",
-        "class_names", "publish_markers", "transform_inputs", "transform_tolerance",
+        "class_names", "publish_markers", "input_type", "autoware_class_map",
+        "min_confidence", "class_min_confidence", "range_min_confidence",
+        "existence_fallback", "transform_inputs", "transform_tolerance",
         "output_scores", "sync_mode", "sync_slop",
         "sync_queue_size", "processing_queue_size", "diagnostics_period"})
     assert_yaml_matches_declared(node, "mimo_ros")
@@ -384,6 +386,69 @@ def test_heads_in_other_frames(ros, model_dir):
     assert wait_until(lambda: diag_values(rig.node.diag.status()).get("dropped.no_transform")
                       == "1")
     assert "head 1: no transform from 'radar' to 'lidar'" in rig.node.diag.status().message
+
+
+def test_autoware_heads_in_base_link(ros, model_dir):
+    """Acceptance (issue 19): two heads as DetectedObjects in base_link (variances beside
+    them, ids left empty as Autoware objects have none) into mimo_node: output/objects has
+    one object per merged detection in the vision_msgs path's order, existence_probability
+    = its confidence for the same scene, the merged x / y / z / yaw variances on the pose
+    covariance with has_position_covariance."""
+    from autoware_perception_msgs.msg import DetectedObjects
+    from autoware_scenes import detected_objects, float32_scores
+
+    node = ros.start(MimoNode, parameters=params(model_dir, input_type="autoware",
+                                                 processing_queue_size=10))
+    heads_pub = [ros.sensor_publisher(DetectedObjects, f"input/head_{k}") for k in range(2)]
+    vars_pub = [ros.sensor_publisher(BoxVarianceArray, f"input/head_{k}/variance")
+                for k in range(2)]
+    objects = ros.collector(DetectedObjects, "output/objects")
+    unc = ros.collector(ClusterUncertaintyArray, "output/uncertainty")
+    for p in heads_pub + vars_pub:
+        assert ros.wait_for_match(p)
+    assert ros.wait_for_match(objects.subscription) and ros.wait_for_match(unc.subscription)
+    p = params(model_dir)
+    settings = MimoSettings()
+    models = MetaModels(p["classifier_path"], p["regressor_path"], settings.feature_names())
+    confs = []
+    for i in range(2):
+        _, heads, variances, _ = make_frame(i)
+        heads = [float32_scores(h) for h in heads]
+        for h in heads + variances:
+            h.header.frame_id = "base_link"
+        for v in variances:
+            for e in v.variances:
+                e.detection_id = ""
+        ref = process_frame(heads[0].header, heads, variances, settings, models)
+        confs.append(ref.confidence)
+        for pub, h in zip(heads_pub, heads):
+            pub.publish(detected_objects(h))
+        for pub, v in zip(vars_pub, variances):
+            pub.publish(v)
+        assert objects.wait_for(i + 1, timeout=15.0) and unc.wait_for(i + 1, 5.0)
+        got = objects.messages[i]
+        assert got.header == heads[0].header and len(got.objects) == len(ref.frame) > 5
+        m = ref.frame.merge
+        want = np.where(np.isnan(ref.confidence), m.scores, ref.confidence)
+        np.testing.assert_allclose([o.existence_probability for o in got.objects], want,
+                                   rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose([c.confidence for c in unc.messages[i].clusters],
+                                   ref.confidence)
+        pose = [o.kinematics.pose_with_covariance for o in got.objects]
+        np.testing.assert_allclose([[q.pose.position.x, q.pose.position.y] for q in pose],
+                                   m.boxes[:, :2])
+        ref_cov = np.array([d.results[0].pose.covariance for d in ref.detections.detections])
+        cov = np.array([q.covariance for q in pose])
+        np.testing.assert_allclose(cov[:, [0, 7, 14, 35]], ref_cov[:, [0, 7, 14, 35]])
+        assert (cov[:, [0, 7, 14]] > 0).all()
+        assert all(o.kinematics.has_position_covariance for o in got.objects)
+        top = [o.classification[0] for o in got.objects]
+        np.testing.assert_allclose([c.probability for c in top], want, rtol=1e-6, atol=1e-7)
+        labels = {"car": 1, "truck": 2, "pedestrian": 7, "cyclist": 6}
+        assert [c.label for c in top] == [labels[x] for x in ref.frame.class_labels()]
+    allc = np.concatenate(confs)
+    assert allc.min() < 0.5 < allc.max()
+    assert node.diag.dropped == 0
 
 
 def test_malformed_heads_do_not_kill_the_node(ros, model_dir):

@@ -352,6 +352,28 @@ def test_process_frame_outputs(models):
     assert dets2.detections[0].results[0].hypothesis.score == pytest.approx(f.merge.scores[0])
 
 
+def test_thresholds_filter_the_detections_not_the_uncertainty(models):
+    from lidar_quality_core.thresholds import ConfidenceThresholds
+    s = MimoSettings()
+    heads = [head_msg(BOXES + [0.05, 0, 0, 0, 0, 0, 0]), head_msg(ids=[3, 4, 5])]
+    full = process_frame(header(3), heads, None, s, models)
+    conf = full.confidence
+    cut = float(np.sort(conf)[1])  # removes the lowest one or more
+    th = ConfidenceThresholds(floor=cut)
+    out = process_frame(header(3), heads, None, s, models, thresholds=th, serialized=True)
+    kept = conf >= cut
+    assert out.kept.tolist() == kept.tolist() and 0 < kept.sum() < len(conf)
+    from rclpy.serialization import deserialize_message
+    from vision_msgs.msg import Detection3DArray
+    dets = deserialize_message(out.detections, Detection3DArray)
+    ids = out.frame.merged_ids()
+    assert [d.id for d in dets.detections] == [ids[i] for i in np.flatnonzero(kept)]
+    assert [c.detection_id for c in out.uncertainty.clusters] == ids  # every merged one
+    labels = out.frame.class_labels()
+    assert sum(out.removed.values()) == int((~kept).sum())
+    assert set(out.removed) == {f"removed.{labels[i]}.all" for i in np.flatnonzero(~kept)}
+
+
 # ------------------------------------------------------------------ InputLiveness
 S = 1_000_000_000
 
