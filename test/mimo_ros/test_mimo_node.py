@@ -390,50 +390,63 @@ def test_heads_in_other_frames(ros, model_dir):
 
 def test_autoware_heads_in_base_link(ros, model_dir):
     """Acceptance (issue 19): two heads as DetectedObjects in base_link (variances beside
-    them, ids left empty as Autoware objects have none) into mimo_node: output/objects has
-    one object per merged detection in the vision_msgs path's order, existence_probability
-    = its confidence for the same scene, the merged x / y / z / yaw variances on the pose
-    covariance with has_position_covariance."""
+    them, named by index as Autoware objects have no ids) and the cloud in the lidar's frame
+    (static base_link <- lidar on /tf_static) into mimo_node with point features:
+    output/objects has one object per merged detection in the vision_msgs path's order,
+    existence_probability = its confidence for the same scene, the merged x / y / z / yaw
+    variances on the pose covariance with has_position_covariance."""
     from autoware_perception_msgs.msg import DetectedObjects
     from autoware_scenes import detected_objects, float32_scores
 
-    node = ros.start(MimoNode, parameters=params(model_dir, input_type="autoware",
+    static = ros.publisher(TFMessage, "/tf_static", tf_static_qos())
+    static.publish(tf_message("base_link", "lidar", T_BASE_LIDAR))
+    node = ros.start(MimoNode, parameters=params(model_dir, True, input_type="autoware",
                                                  processing_queue_size=10))
+    assert wait_until(lambda: node.tf.buffer.can_transform("base_link", "lidar"))
     heads_pub = [ros.sensor_publisher(DetectedObjects, f"input/head_{k}") for k in range(2)]
     vars_pub = [ros.sensor_publisher(BoxVarianceArray, f"input/head_{k}/variance")
                 for k in range(2)]
+    points = ros.sensor_publisher(PointCloud2, "input/points")
     objects = ros.collector(DetectedObjects, "output/objects")
     unc = ros.collector(ClusterUncertaintyArray, "output/uncertainty")
-    for p in heads_pub + vars_pub:
+    for p in heads_pub + vars_pub + [points]:
         assert ros.wait_for_match(p)
     assert ros.wait_for_match(objects.subscription) and ros.wait_for_match(unc.subscription)
-    p = params(model_dir)
-    settings = MimoSettings()
+    p = params(model_dir, True)
+    settings = MimoSettings(use_points=True)
     models = MetaModels(p["classifier_path"], p["regressor_path"], settings.feature_names())
     confs = []
     for i in range(2):
-        _, heads, variances, _ = make_frame(i)
-        heads = [float32_scores(h) for h in heads]
-        for h in heads + variances:
-            h.header.frame_id = "base_link"
-        for v in variances:
+        _, heads, variances, cloud = make_frame(i)
+        heads = [detections_in_frame(float32_scores(h), T_BASE_LIDAR, "base_link")
+                 for h in heads]
+        for v in variances:  # (make_frame's messages share one Header object)
+            v.header = Header(stamp=v.header.stamp, frame_id="base_link")
+        assert cloud.header.frame_id == "lidar"
+        # the same scene through the vision_msgs path, the cloud moved into base_link
+        ref = process_frame(heads[0].header, heads, variances, settings, models,
+                            cloud_msg=in_frame(cloud, T_BASE_LIDAR, "base_link"))
+        assert not ref.frame.issues  # every variance entry used
+        for v in variances:  # Autoware objects have no ids: entries named by index
             for e in v.variances:
-                e.detection_id = ""
-        ref = process_frame(heads[0].header, heads, variances, settings, models)
+                e.detection_id = str(e.detection_index)
+        assert np.isfinite(ref.frame.features[:, -5:]).all()  # point features present
         confs.append(ref.confidence)
         for pub, h in zip(heads_pub, heads):
             pub.publish(detected_objects(h))
         for pub, v in zip(vars_pub, variances):
             pub.publish(v)
+        points.publish(cloud)
         assert objects.wait_for(i + 1, timeout=15.0) and unc.wait_for(i + 1, 5.0)
         got = objects.messages[i]
         assert got.header == heads[0].header and len(got.objects) == len(ref.frame) > 5
         m = ref.frame.merge
         want = np.where(np.isnan(ref.confidence), m.scores, ref.confidence)
+        # float32 on the wire; the cloud's points rounded in base_link for the reference
         np.testing.assert_allclose([o.existence_probability for o in got.objects], want,
-                                   rtol=1e-6, atol=1e-7)
+                                   rtol=1e-6, atol=1e-6)
         np.testing.assert_allclose([c.confidence for c in unc.messages[i].clusters],
-                                   ref.confidence)
+                                   ref.confidence, atol=1e-6)
         pose = [o.kinematics.pose_with_covariance for o in got.objects]
         np.testing.assert_allclose([[q.pose.position.x, q.pose.position.y] for q in pose],
                                    m.boxes[:, :2])
@@ -443,7 +456,7 @@ def test_autoware_heads_in_base_link(ros, model_dir):
         assert (cov[:, [0, 7, 14]] > 0).all()
         assert all(o.kinematics.has_position_covariance for o in got.objects)
         top = [o.classification[0] for o in got.objects]
-        np.testing.assert_allclose([c.probability for c in top], want, rtol=1e-6, atol=1e-7)
+        np.testing.assert_allclose([c.probability for c in top], want, rtol=1e-6, atol=1e-6)
         labels = {"car": 1, "truck": 2, "pedestrian": 7, "cyclist": 6}
         assert [c.label for c in top] == [labels[x] for x in ref.frame.class_labels()]
     allc = np.concatenate(confs)
