@@ -20,7 +20,9 @@ re-scales the classification probabilities as the vision_msgs output does
 their ratio to it). A NaN confidence never reaches Autoware: the object keeps its own
 existence probability (0 if that is not finite either; or a fixed ``fallback``) and its
 classification, and is counted.
-No rclpy: messages are read and written through their attributes.
+No rclpy: messages are read and written through their attributes. The nodes read and
+write the same rules from and to the serialized bytes (``autoware_cdr``), ~70x cheaper
+than rclpy's message objects.
 """
 from __future__ import annotations
 
@@ -32,10 +34,11 @@ from .boxes import DetectionArrays, arrays_from_fields, yaw_to_quaternion
 from .detection_cdr import rescaled_scores
 from .parameters import param
 
-__all__ = ["LABELS", "DEFAULT_CLASS_MAP", "AutowareDetections", "AutowareOutput",
+__all__ = ["LABELS", "DEFAULT_CLASS_MAP", "AutowareOutput",
            "parse_class_map",
            "label_names", "objects_to_arrays", "score_objects", "kept_objects",
-           "objects_from_boxes", "objects_from_detections", "input_type_param", "class_map_param",
+           "objects_from_boxes", "objects_from_detections", "arrays_of_objects",
+           "scored_values", "input_type_param", "class_map_param",
            "existence_fallback_param"]
 
 #: ObjectClassification labels by value (autoware_perception_msgs constants).
@@ -45,23 +48,6 @@ LABELS = ("UNKNOWN", "CAR", "TRUCK", "BUS", "TRAILER", "MOTORCYCLE", "BICYCLE", 
 DEFAULT_CLASS_MAP = {"CAR": "car", "TRUCK": "truck", "PEDESTRIAN": "pedestrian",
                      "BICYCLE": "cyclist"}
 BOUNDING_BOX, CYLINDER, POLYGON = 0, 1, 2
-
-
-@dataclass
-class AutowareDetections:
-    """A DetectedObjects message with its arrays read (the methods' input, like
-    ``detection_cdr.DecodedDetections`` for vision_msgs): ``header``, ``arrays``, ``msg``."""
-
-    header: object
-    arrays: DetectionArrays
-    msg: object
-
-    @classmethod
-    def read(cls, msg, class_map: dict[str, str] | None = None) -> "AutowareDetections":
-        return cls(msg.header, objects_to_arrays(msg, class_map), msg)
-
-    def __len__(self) -> int:
-        return len(self.arrays)
 
 
 @dataclass
@@ -95,71 +81,97 @@ def label_names(class_map: dict[str, str] | None = None) -> list[str]:
     return [m.get(label, label.lower()) for label in LABELS]
 
 
-def _size(shape) -> tuple[float, float, float]:
-    d = shape.dimensions
-    if shape.type == BOUNDING_BOX:
-        return d.x, d.y, d.z
-    if shape.type == CYLINDER:
-        return d.x, d.x, d.z
-    if shape.type == POLYGON:
-        pts = shape.footprint.points
-        if not pts:
-            return np.nan, np.nan, d.z
-        xs, ys = [p.x for p in pts], [p.y for p in pts]
-        return max(xs) - min(xs), max(ys) - min(ys), d.z
+def _size(shape_type: int, dims, footprint) -> tuple[float, float, float]:
+    if shape_type == BOUNDING_BOX:
+        return dims[0], dims[1], dims[2]
+    if shape_type == CYLINDER:
+        return dims[0], dims[0], dims[2]
+    if shape_type == POLYGON and footprint is not None and len(footprint):
+        fp = np.asarray(footprint, np.float64)
+        return (fp[:, 0].max() - fp[:, 0].min(), fp[:, 1].max() - fp[:, 1].min(), dims[2])
     return np.nan, np.nan, np.nan
+
+
+def arrays_of_objects(pose, types, dims, footprints: dict, hyp_det, hyp_cls, hyp_score
+                      ) -> DetectionArrays:
+    """DetectionArrays from fields read out of DetectedObjects (of messages, or of their
+    bytes: ``autoware_cdr``), so that both share one set of rules: ``pose`` (n, 7)
+    position and quaternion x y z w, ``types`` (n,) shape types, ``dims`` (n, 3),
+    ``footprints`` {object: (m, >= 2) points} of the polygons, one entry per
+    classification (object, class name, probability)."""
+    pose = np.asarray(pose, np.float64).reshape(-1, 7)
+    dims = np.asarray(dims, np.float64).reshape(-1, 3)
+    types = np.asarray(types, np.int64).reshape(-1)
+    n = len(pose)
+    size = np.array([_size(int(t), d, footprints.get(i)) for i, (t, d) in
+                     enumerate(zip(types.tolist(), dims.tolist()))], np.float64).reshape(n, 3)
+    raw = np.concatenate([pose[:, :3], size, pose[:, 3:7]], axis=1)
+    arrays = arrays_from_fields(raw, [str(i) for i in range(n)], hyp_det, hyp_cls, hyp_score)
+    for i in np.flatnonzero(~np.isin(types, (BOUNDING_BOX, CYLINDER, POLYGON))).tolist():
+        arrays.reasons[i] = f"unknown shape type {types[i]}"  # in words, not as a NaN size
+        arrays.valid[i] = False
+    for i in np.flatnonzero(types == POLYGON).tolist():
+        if footprints.get(i) is None or not len(footprints[i]):
+            arrays.reasons[i] = "polygon shape without footprint points"
+            arrays.valid[i] = False
+    return arrays
 
 
 def objects_to_arrays(msg, class_map: dict[str, str] | None = None) -> DetectionArrays:
     """``DetectionArrays`` of a DetectedObjects message (module docstring)."""
     names = label_names(class_map)
-    rows, hyp_det, hyp_cls, hyp_sc, bad_shape = [], [], [], [], {}
+    pose, types, dims, footprints = [], [], [], {}
+    hyp_det, hyp_cls, hyp_sc = [], [], []
     for i, obj in enumerate(msg.objects):
-        pose = obj.kinematics.pose_with_covariance.pose
-        p, q = pose.position, pose.orientation
-        if obj.shape.type not in (BOUNDING_BOX, CYLINDER, POLYGON):
-            bad_shape[i] = f"unknown shape type {obj.shape.type}"
-        elif obj.shape.type == POLYGON and not obj.shape.footprint.points:
-            bad_shape[i] = "polygon shape without footprint points"
-        rows.append((p.x, p.y, p.z, *_size(obj.shape), q.x, q.y, q.z, q.w))
+        pp = obj.kinematics.pose_with_covariance.pose
+        p, q, d = pp.position, pp.orientation, obj.shape.dimensions
+        pose.append((p.x, p.y, p.z, q.x, q.y, q.z, q.w))
+        types.append(obj.shape.type)
+        dims.append((d.x, d.y, d.z))
+        if obj.shape.type == POLYGON:
+            footprints[i] = [(pt.x, pt.y) for pt in obj.shape.footprint.points]
         for c in obj.classification:
             hyp_det.append(i)
             hyp_cls.append(names[c.label] if c.label < len(names) else f"label_{c.label}")
             hyp_sc.append(c.probability)
-    raw = np.array(rows, dtype=np.float64).reshape(len(rows), 10)
-    arrays = arrays_from_fields(raw, [str(i) for i in range(len(rows))], hyp_det, hyp_cls,
-                                hyp_sc)
-    for i, why in bad_shape.items():  # said in words, not as the NaN size it causes
-        arrays.reasons[i] = why
-        arrays.valid[i] = False
-    return arrays
+    return arrays_of_objects(pose, types, dims, footprints, hyp_det, hyp_cls, hyp_sc)
+
+
+def scored_values(existence, probs, det, confidence, fallback: float | None = None):
+    """``(existence, probabilities, n_fallback)`` re-scored by ``confidence`` (one per
+    object; ``probs`` flat with ``det`` its object): the confidence where finite, with the
+    probabilities scaled as ``detection_cdr.rescaled_scores`` does; elsewhere the object's
+    own existence (0 if not finite) or ``fallback``, the probabilities as they are."""
+    conf = np.asarray(confidence, np.float64).reshape(-1)
+    ex = np.asarray(existence, np.float64).reshape(-1)
+    if len(conf) != len(ex):
+        raise ValueError(f"{len(conf)} confidences for {len(ex)} objects")
+    probs = np.asarray(probs, np.float64).reshape(-1)
+    det = np.asarray(det, np.int64).reshape(-1)
+    bad = ~np.isfinite(conf)
+    own = np.where(np.isfinite(ex), ex, 0.0) if fallback is None else np.full(len(ex), fallback)
+    new_ex = np.where(bad, own, conf)
+    new_p = probs.copy()
+    if len(det):
+        scaled = rescaled_scores(probs, det, conf)
+        ok = ~bad[det]
+        new_p[ok] = scaled[ok]
+    return new_ex, new_p, int(bad.sum())
 
 
 def score_objects(msg, confidence, *, fallback: float | None = None) -> int:
     """Write ``confidence`` (one per object, NaN allowed) into ``msg`` in place (module
     docstring); returns how many objects got the fallback instead (NaN confidence)."""
-    conf = np.asarray(confidence, dtype=np.float64).reshape(-1)
     objects = msg.objects
-    if len(conf) != len(objects):
-        raise ValueError(f"{len(conf)} confidences for {len(objects)} objects")
     det = [i for i, o in enumerate(objects) for _ in o.classification]
     probs = [c.probability for o in objects for c in o.classification]
-    scaled = rescaled_scores(probs, det, conf).tolist() if det else []
-    j = 0
-    n_fallback = 0
-    for obj, c in zip(objects, conf.tolist()):
-        k = len(obj.classification)
-        if np.isfinite(c):
-            obj.existence_probability = c
-            for cls, s in zip(obj.classification, scaled[j:j + k]):
-                cls.probability = s
-        else:
-            n_fallback += 1
-            if fallback is not None:
-                obj.existence_probability = float(fallback)
-            elif not np.isfinite(obj.existence_probability):
-                obj.existence_probability = 0.0
-        j += k
+    ex, new_p, n_fallback = scored_values([o.existence_probability for o in objects], probs,
+                                          det, confidence, fallback)
+    it = iter(new_p.tolist())
+    for obj, e in zip(objects, ex.tolist()):
+        obj.existence_probability = e
+        for cls in obj.classification:
+            cls.probability = next(it)
     return n_fallback
 
 

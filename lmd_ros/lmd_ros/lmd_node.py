@@ -57,7 +57,10 @@ processed as if the frames were equal.
 from __future__ import annotations
 
 
-from lidar_quality_core.autoware_objects import AutowareDetections, parse_class_map
+from functools import partial
+
+from lidar_quality_core.autoware_cdr import decode_detected_objects
+from lidar_quality_core.autoware_objects import parse_class_map
 from lidar_quality_core.detection_cdr import decode_detection_array
 from lidar_quality_core.thresholds import from_parameters as thresholds_from
 from lidar_quality_msgs.msg import DetectionQualityArray
@@ -108,9 +111,10 @@ class LmdNode(QualityNode):
             self.diag.set_value(key, value)
         # Detection arrays arrive as bytes, decoded by detection_cdr: rclpy's own
         # deserialization of ~450 proposals x 4 hypotheses costs 100-300 ms per frame.
-        # (Autoware's DetectedObjects are taken as messages and read in process())
-        self.start_inputs(topics, raw_decoders={} if self.autoware else {
-            t: decode_detection_array for _, t in topics if t != "input/points"}, hints={
+        decode = (partial(decode_detected_objects, class_map=self.class_map) if self.autoware
+                  else decode_detection_array)
+        self.start_inputs(topics, raw_decoders={
+            t: decode for _, t in topics if t != "input/points"}, hints={
             "input/proposals": "set proposal_mode: none if your detector publishes no "
                                "pre-NMS proposals (with the none-mode models)",
             "input/detections": "set proposal_mode: exact if only proposals are published "
@@ -121,10 +125,6 @@ class LmdNode(QualityNode):
 
     def process(self, messages: list, markers: bool):
         msgs = dict(zip(self.inputs.topics, messages))
-        if self.autoware:
-            for t in ("input/detections", "input/proposals"):
-                if t in msgs:
-                    msgs[t] = AutowareDetections.read(msgs[t], self.class_map)
         return self.processor.process(msgs["input/points"], msgs.get("input/detections"),
                                       msgs.get("input/proposals"), markers=markers)
 

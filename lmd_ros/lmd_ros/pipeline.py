@@ -58,9 +58,9 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_quality_core.autoware_objects import (AutowareDetections, class_map_param,
-                                                 existence_fallback_param, input_type_param,
-                                                 kept_objects, score_objects)
+from lidar_quality_core.autoware_cdr import DecodedObjects, encode_detected_objects
+from lidar_quality_core.autoware_objects import (class_map_param, existence_fallback_param,
+                                                 input_type_param)
 from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt_issue
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
                                               rescaled_scores)
@@ -269,12 +269,12 @@ def _exact_nms(props: DetectionArrays, settings: LmdSettings):
 
 
 def _arrays(dets) -> DetectionArrays:
-    read = getattr(dets, "arrays", None)  # DecodedDetections, AutowareDetections
+    read = getattr(dets, "arrays", None)  # DecodedDetections, DecodedObjects
     return read if isinstance(read, DetectionArrays) else detections_to_arrays(dets)
 
 
 def _messages(dets, rows) -> list | None:
-    if isinstance(dets, (DecodedDetections, AutowareDetections)):
+    if isinstance(dets, (DecodedDetections, DecodedObjects)):
         return None
     msgs = dets.detections
     return [msgs[i] for i in rows.tolist()]
@@ -503,12 +503,12 @@ class LmdProcessor:
             conf_src[frame.rows] = conf
             new = rescaled_scores(src.hyp_score, src.hyp_det, conf_src)
             det_msg = encode_detection_array(src, frame.rows[kept], new)
-        elif isinstance(src, AutowareDetections):  # re-scored in place, as messages are
-            det_msg = src.msg
-            det_msg.objects = [det_msg.objects[i] for i in frame.rows.tolist()]
-            fallback = score_objects(det_msg, conf, fallback=(
-                None if self.existence_fallback < 0 else self.existence_fallback))
-            kept_objects(det_msg, kept)
+        elif isinstance(src, DecodedObjects):  # Autoware: bytes in, bytes out
+            conf_src = np.full(len(src), np.nan)
+            conf_src[frame.rows] = conf
+            det_msg, fallback = encode_detected_objects(
+                src, frame.rows[kept], conf_src,
+                fallback=None if self.existence_fallback < 0 else self.existence_fallback)
         else:
             hyps = [r.hypothesis for m in frame.messages for r in m.results]
             owner = np.repeat(np.arange(n), [len(m.results) for m in frame.messages])

@@ -47,8 +47,10 @@ import threading
 import time
 
 from diagnostic_msgs.msg import DiagnosticStatus
-from lidar_quality_core.autoware_objects import (AutowareDetections, AutowareOutput,
-                                                 parse_class_map)
+from functools import partial
+
+from lidar_quality_core.autoware_cdr import decode_detected_objects
+from lidar_quality_core.autoware_objects import AutowareOutput, parse_class_map
 from lidar_quality_core.detection_cdr import decode_detection_array
 from lidar_quality_core.thresholds import from_parameters as thresholds_from
 from lidar_quality_msgs.msg import BoxVarianceArray, ClusterUncertaintyArray
@@ -104,11 +106,11 @@ class MimoNode(QualityNode):
         self._stopped_since: dict[int, float] = {}
         # heads arrive as bytes, decoded straight to arrays: rclpy's own deserialization
         # of a 100-box head (400 hypotheses) costs tens of ms per message
-        # (Autoware's DetectedObjects are taken as messages and read in process())
+        decode = (decode_detection_array if self.autoware is None
+                  else partial(decode_detected_objects, class_map=self.autoware.class_map))
         self.start_inputs(
             topics, sync=sync, on_arrival=self._on_arrival,
-            raw_decoders={} if self.autoware is not None else {
-                f"input/head_{k}": decode_detection_array for k in range(K)},
+            raw_decoders={f"input/head_{k}": decode for k in range(K)},
             hints={**{f"input/head_{k}": f"set num_heads: {k}" for k in range(1, K)},
                    **{f"input/head_{k}/variance": "set use_variances: false" for k in range(K)},
                    "input/points": "set use_points: false (with the models trained without "
@@ -162,11 +164,7 @@ class MimoNode(QualityNode):
         K = self.settings.num_heads
         variances = messages[K:2 * K] if self.use_variances else None
         cloud = messages[-1] if self.settings.use_points else None
-        heads = messages[:K]
-        if self.autoware is not None:
-            heads = [None if h is None else AutowareDetections.read(h, self.autoware.class_map)
-                     for h in heads]
-        return self.processor.process(heads, variances, cloud, markers=markers)
+        return self.processor.process(messages[:K], variances, cloud, markers=markers)
 
 
 def main(args=None) -> int:

@@ -1,41 +1,12 @@
 """autoware_objects: DetectedObjects read into DetectionArrays (boxes, classes, shapes) as
 the vision_msgs path reads the same scene, and the meta confidence written back."""
-import math
-
 import numpy as np
 import pytest
-from autoware_perception_msgs.msg import (DetectedObject, DetectedObjects, ObjectClassification,
-                                          Shape)
-from geometry_msgs.msg import Point32
+from autoware_scenes import hand_built_scene as _scene
 from lidar_quality_core.autoware_objects import (label_names, objects_to_arrays,
                                                  parse_class_map, score_objects)
 from lidar_quality_core.boxes import arrays_to_detections, detections_to_arrays
 from std_msgs.msg import Header
-
-
-def _obj(x, y, yaw, size, classes, shape=Shape.BOUNDING_BOX, existence=0.5, footprint=None):
-    o = DetectedObject(existence_probability=existence)
-    p = o.kinematics.pose_with_covariance.pose
-    p.position.x, p.position.y, p.position.z = x, y, 0.8
-    p.orientation.z, p.orientation.w = math.sin(yaw / 2), math.cos(yaw / 2)
-    o.shape.type = shape
-    o.shape.dimensions.x, o.shape.dimensions.y, o.shape.dimensions.z = size
-    if footprint is not None:
-        o.shape.footprint.points = [Point32(x=a, y=b) for a, b in footprint]
-    o.classification = [ObjectClassification(label=lb, probability=pr) for lb, pr in classes]
-    return o
-
-
-def _scene():
-    C = ObjectClassification
-    return DetectedObjects(header=Header(frame_id="base_link"), objects=[
-        _obj(10, 2, 0.3, (4.2, 1.8, 1.5), [(C.CAR, 0.75), (C.TRUCK, 0.25)]),
-        _obj(-5, 1, -1.0, (0.6, 0.0, 1.7), [(C.PEDESTRIAN, 0.5)], shape=Shape.CYLINDER),
-        _obj(3, -4, 0.0, (0, 0, 1.2), [(C.BICYCLE, 0.625)], shape=Shape.POLYGON,
-             footprint=[(-0.9, -0.3), (0.9, -0.3), (0.9, 0.3), (-0.9, 0.3)]),
-        _obj(20, 0, 0.0, (11.0, 2.5, 3.2), [(C.BUS, 0.875)]),
-        _obj(7, 7, 0.0, (1, 1, 1), [(C.CAR, 0.5)], shape=7),
-    ])
 
 
 def test_boxes_classes_and_shapes():
