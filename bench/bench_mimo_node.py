@@ -11,8 +11,8 @@ stand-in targets (only the cost matters here). Each repetition processes the nex
 frames.
 
 Figures (ms, p50 / p99):
-* ``mimo.node_frame_ms``: K = 2 x 100 boxes: the heads' bytes decoded as the node's raw
-  subscriptions do (``detection_cdr``), the variance messages deserialized as rclpy does,
+* ``mimo.node_frame_ms``: K = 2 x 100 boxes: the heads' and variances' bytes decoded as
+  the node's raw subscriptions do (``detection_cdr``, ``box_variance_cdr``),
   ``pipeline.process_frame`` (merge, features, meta models; detections encoded to bytes
   as the node publishes them, ``detection_cdr.encode_detections``) and the uncertainty
   message serialized as ``publish`` does (goal p99 <= 10 ms); ``mimo.node_frame_k4_ms``:
@@ -73,14 +73,14 @@ def _serialized(frame):
 
 def _node_frame(data, settings, models):
     """Bytes in, bytes out: one frame of the node (module docstring)."""
+    from lidar_quality_core.box_variance_cdr import decode_box_variance_array
     from lidar_quality_core.detection_cdr import decode_detection_array
-    from lidar_quality_msgs.msg import BoxVarianceArray
-    from rclpy.serialization import deserialize_message, serialize_message
+    from rclpy.serialization import serialize_message
 
     from mimo_ros.pipeline import process_frame
 
     heads = [decode_detection_array(b) for b in data[0]]
-    variances = [deserialize_message(b, BoxVarianceArray) for b in data[1]]
+    variances = [decode_box_variance_array(b) for b in data[1]]
     out = process_frame(heads[0].header, heads, variances, settings, models, serialized=True)
     return out.detections, serialize_message(out.uncertainty)
 
@@ -110,9 +110,9 @@ def _cycle(fn, items):
 
 
 def figures():
+    from lidar_quality_core.box_variance_cdr import decode_box_variance_array
     from lidar_quality_core.detection_cdr import decode_detection_array
-    from lidar_quality_msgs.msg import BoxVarianceArray
-    from rclpy.serialization import deserialize_message, serialize_message
+    from rclpy.serialization import serialize_message
     from threadpoolctl import threadpool_limits
 
     from lidar_quality_ros.markers import box_markers
@@ -131,7 +131,7 @@ def figures():
                 continue
             yield "mimo.node_decode_ms", _cycle(
                 lambda d: [head_detections(decode_detection_array(b),
-                                           deserialize_message(v, BoxVarianceArray), s)
+                                           decode_box_variance_array(v), s)
                            for b, v in zip(*d)], data)
             decoded = [[head_detections(d, v, s)[0] for d, v in zip(f[1], f[2])] for f in frames]
             yield "mimo.node_merge_ms", _cycle(

@@ -107,9 +107,9 @@ def decode_detected_objects(data, class_map: dict[str, str] | None = None) -> De
     if p > end:
         raise CdrError(f"truncated DetectedObjects: {end} bytes, need {p}")
     raw_bytes = np.frombuffer(buf, dtype=np.uint8)
-    as_i = lambda x: np.asarray(x, dtype=np.int64)  # noqa: E731
-    exist_at, pose_at, twist_at = as_i(exist_at), as_i(pose_at), as_i(twist_at)
-    type_at, fp_at, dims_at, cls_off = as_i(type_at), as_i(fp_at), as_i(dims_at), as_i(cls_off)
+    exist_at, pose_at, twist_at, type_at, fp_at, dims_at, cls_off = (
+        np.asarray(x, dtype=np.int64)
+        for x in (exist_at, pose_at, twist_at, type_at, fp_at, dims_at, cls_off))
     det = np.repeat(np.arange(n), np.diff(cls_off))
     first = np.repeat(exist_at + 8, np.diff(cls_off))
     cls_at = first + 8 * (np.arange(len(det)) - np.repeat(cls_off[:-1], np.diff(cls_off)))

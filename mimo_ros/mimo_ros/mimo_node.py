@@ -21,10 +21,10 @@ confidence (``existence_fallback`` when there is none, counted as
 ``detections.fallback``), the classification as the scores above, the merged x / y / z /
 yaw variances on ``pose_with_covariance`` with ``has_position_covariance``.
 
-The heads are subscribed raw and decoded from their bytes
-(``lidar_quality_core.detection_cdr``, same rules as ``boxes.detections_to_arrays``):
-rclpy's deserialization of a 100-box head with 4 hypotheses per box costs far more than
-the whole frame.
+The heads and their variances are subscribed raw and decoded from their bytes
+(``lidar_quality_core.detection_cdr``, same rules as ``boxes.detections_to_arrays``;
+``box_variance_cdr``; ``autoware_cdr``): rclpy's deserialization of a 100-box head with 4
+hypotheses per box costs far more than the whole frame.
 
 Stopped inputs: an input (a head, a variance topic, the cloud) that sends nothing for
 ``head_timeout`` seconds of stamp time while the others arrive is declared stopped
@@ -50,6 +50,7 @@ from diagnostic_msgs.msg import DiagnosticStatus
 from functools import partial
 
 from lidar_quality_core.autoware_cdr import decode_detected_objects
+from lidar_quality_core.box_variance_cdr import decode_box_variance_array
 from lidar_quality_core.autoware_objects import AutowareOutput, parse_class_map
 from lidar_quality_core.detection_cdr import decode_detection_array
 from lidar_quality_core.thresholds import from_parameters as thresholds_from
@@ -110,7 +111,9 @@ class MimoNode(QualityNode):
                   else partial(decode_detected_objects, class_map=self.autoware.class_map))
         self.start_inputs(
             topics, sync=sync, on_arrival=self._on_arrival,
-            raw_decoders={f"input/head_{k}": decode for k in range(K)},
+            raw_decoders={**{f"input/head_{k}": decode for k in range(K)},
+                          **{f"input/head_{k}/variance": decode_box_variance_array
+                             for k in range(K)}},
             hints={**{f"input/head_{k}": f"set num_heads: {k}" for k in range(1, K)},
                    **{f"input/head_{k}/variance": "set use_variances: false" for k in range(K)},
                    "input/points": "set use_points: false (with the models trained without "

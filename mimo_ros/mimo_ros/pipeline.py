@@ -55,6 +55,7 @@ from lidar_quality_core.autoware_objects import (AutowareOutput, class_map_param
                                                  existence_fallback_param, input_type_param,
                                                  objects_from_boxes)
 from lidar_quality_core.box_geometry import as_boxes, inbox_point_stats
+from lidar_quality_core.box_variance_cdr import DecodedVariances
 from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
                                       detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
@@ -222,28 +223,32 @@ def _class_probabilities(arrays: DetectionArrays, class_names):
     return probs, known, in_range
 
 
+def _variance_entries(msg) -> tuple[np.ndarray, list, np.ndarray]:
+    """``(detection_index (m,), detection_id (m), values (m, 7))`` of a BoxVarianceArray
+    message or of its bytes decoded (``box_variance_cdr.DecodedVariances``)."""
+    if isinstance(msg, DecodedVariances):
+        return msg.index, msg.ids, msg.values
+    v = msg.variances
+    return (np.array([e.detection_index for e in v], np.int64), [e.detection_id for e in v],
+            np.array([(e.x, e.y, e.z, e.length, e.width, e.height, e.yaw) for e in v],
+                     np.float64).reshape(len(v), 7))
+
+
 def _variances(msg, arrays: DetectionArrays, issues: list | None) -> np.ndarray:
     n = len(arrays)
     var = np.full((n, 7), np.nan)
     if msg is None:
         return var
-    bad = 0
-    rows = []
-    for v in msg.variances:
-        i = v.detection_index
-        if i >= n or (v.detection_id and v.detection_id != arrays.ids[i]):
-            bad += 1
-            continue
-        rows.append((i, v.x, v.y, v.z, v.length, v.width, v.height, v.yaw))
-    if rows:
-        r = np.array(rows, dtype=np.float64)
-        vals = r[:, 1:]
-        with np.errstate(invalid="ignore"):
-            ok = np.isfinite(vals) & (vals >= 0.0)
-        bad += int((~ok.all(axis=1)).sum())
-        var[r[:, 0].astype(np.intp)] = np.where(ok, vals, np.nan)
-    if len(msg.variances) != n:
-        _note(issues, f"{len(msg.variances)} variances for {n} detections")
+    idx, ids, vals = _variance_entries(msg)
+    # an entry names its detection by index, and by id unless the id is empty
+    match = np.array([i < n and (not d or d == arrays.ids[i])
+                      for i, d in zip(idx.tolist(), ids)], dtype=bool).reshape(len(ids))
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(vals) & (vals >= 0.0)
+    bad = int((~match).sum()) + int((~ok[match].all(axis=1)).sum())
+    var[idx[match]] = np.where(ok[match], vals[match], np.nan)  # repeated index: the last
+    if len(ids) != n:
+        _note(issues, f"{len(ids)} variances for {n} detections")
     if bad:
         _note(issues, f"{bad} variance entr{'y' if bad == 1 else 'ies'} ignored (index / id "
                       "mismatch, negative or non-finite)")
