@@ -439,7 +439,9 @@ class BagPlayer(Node):
             return self._summary(self.stats)
 
     def _summary(self, s: _Stats) -> dict:
-        scheduled = (s.last_due - s.first_due) if s.first_due is not None else 0.0
+        # the recorded span at ``rate``: a schedule shift (max_lateness) is time lost, not
+        # part of the bag
+        scheduled = (s.last_due - s.first_due - s.shifted_s) if s.first_due is not None else 0.0
         actual = (s.last_done - s.first_due) if s.first_due is not None else 0.0
         every = [v for d in s.late.values() for v in d]
         total_bytes = sum(s.bytes.values())
