@@ -72,6 +72,7 @@ def test_demo_end_to_end(vision_run):
     assert all(v > 0 for v in cpu.values()), cpu
     assert abs(cpu["total"] - sum(v for n, v in cpu.items() if n != "total")) < 0.5
     assert any(x.startswith("demo: CPU per frame [ms]: player ") for x in head), head
+    assert s["sync_s"] >= 0  # written pages flushed before the real-time replay
     # the player's schedule shifts (max_lateness: stalls delay, never burst) are reported
     assert s["player"]["shifts"] >= 0 and s["player"]["shifted_ms"] >= 0
     assert (s["player"]["shifts"] > 0) == any("the player stalled" in x for x in head)
