@@ -17,14 +17,13 @@ dimensions (3 float64, 8-aligned). Other bytes raise :class:`~.detection_cdr.Cdr
 from __future__ import annotations
 
 import struct
-import sys
 from dataclasses import dataclass
 
 import numpy as np
 
 from .autoware_objects import POLYGON, arrays_of_objects, label_names, scored_values
 from .boxes import DetectionArrays
-from .detection_cdr import _PAD, CdrError, _gather, _string
+from .detection_cdr import _PAD, CdrError, _gather, array_opening, open_array
 
 __all__ = ["DecodedObjects", "decode_detected_objects", "encode_detected_objects"]
 
@@ -61,24 +60,11 @@ class DecodedObjects:
 
 def decode_detected_objects(data, class_map: dict[str, str] | None = None) -> DecodedObjects:
     """Decode serialized DetectedObjects bytes (``CdrError`` when they are not one)."""
-    from std_msgs.msg import Header
-
-    buf = bytes(data)
+    # a DetectedObject takes > 720 bytes
+    buf, words, h, n, p = open_array(data, "DetectedObjects", "objects", 720)
     end = len(buf)
-    if end < 4 or buf[:2] != b"\x00\x01":
-        raise CdrError(f"unsupported encapsulation {buf[:4].hex() or '(empty)'} "
-                       "(plain little-endian CDR expected: 0001)")
-    words = (memoryview(buf)[:end - end % 4].cast("I") if sys.byteorder == "little"
-             else np.frombuffer(buf, "<u4", count=end // 4).tolist())
     exist_at, cls_off, pose_at, twist_at, type_at, fp_at, dims_at = [], [0], [], [], [], [], []
     try:
-        sec, nsec = struct.unpack_from("<iI", buf, 4)
-        frame_id, p = _string(buf, 12, _U32, end)
-        p += -p % 4
-        n = words[p >> 2]
-        p += 4
-        if n > (end - p) // 720:  # a DetectedObject takes > 720 bytes
-            raise CdrError(f"{n} objects cannot fit in {end} bytes")
         n_cls = 0
         # offsets only, one iteration per object; the fields are gathered afterwards
         for _ in range(n):
@@ -125,8 +111,6 @@ def decode_detected_objects(data, class_map: dict[str, str] | None = None) -> De
         footprints[i] = np.frombuffer(buf, "<f4", count=3 * m,
                                       offset=int(fp_at[i]) + 4).reshape(m, 3)
     names = label_names(class_map)
-    h = Header(frame_id=frame_id)
-    h.stamp.sec, h.stamp.nanosec = sec, nsec
     arrays = arrays_of_objects(pose, types, dims, footprints, det,
                                [names[c] if c < len(names) else f"label_{c}"
                                 for c in labels.tolist()], probs)
@@ -144,12 +128,8 @@ def encode_detected_objects(dec: DecodedObjects, rows, confidence, *,
                                                        np.diff(dec.cls_offsets)),
                                              confidence, fallback)
     buf = dec.data
-    out = bytearray(buf[:4])
-    (flen,) = _U32.unpack_from(buf, 12)
-    out += buf[4:16 + flen]
     rows = np.asarray(rows, dtype=np.int64).reshape(-1).tolist()
-    out += _PAD[-(len(out) - 4) % 4]
-    out += _U32.pack(len(rows))
+    out = array_opening(buf, len(rows))
     off, cls_at, pr = dec.cls_offsets.tolist(), dec.cls_at.tolist(), probs.tolist()
     ex = exist.tolist()
     pose_at, twist_at = dec.pose_at.tolist(), dec.twist_at.tolist()

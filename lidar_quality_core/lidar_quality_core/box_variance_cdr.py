@@ -11,17 +11,13 @@ y, z, length, width, height, yaw float64 (8-aligned). Other bytes raise
 """
 from __future__ import annotations
 
-import struct
-import sys
 from dataclasses import dataclass
 
 import numpy as np
 
-from .detection_cdr import CdrError, _gather, _string
+from .detection_cdr import CdrError, _gather, open_array
 
 __all__ = ["DecodedVariances", "decode_box_variance_array"]
-
-_U32 = struct.Struct("<I")
 
 
 @dataclass
@@ -40,24 +36,11 @@ class DecodedVariances:
 
 def decode_box_variance_array(data) -> DecodedVariances:
     """Decode serialized BoxVarianceArray bytes (``CdrError`` when they are not one)."""
-    from std_msgs.msg import Header
-
-    buf = bytes(data)
+    # an entry takes >= 64 bytes
+    buf, words, h, n, p = open_array(data, "BoxVarianceArray", "variance entries", 64)
     end = len(buf)
-    if end < 4 or buf[:2] != b"\x00\x01":
-        raise CdrError(f"unsupported encapsulation {buf[:4].hex() or '(empty)'} "
-                       "(plain little-endian CDR expected: 0001)")
-    words = (memoryview(buf)[:end - end % 4].cast("I") if sys.byteorder == "little"
-             else np.frombuffer(buf, "<u4", count=end // 4).tolist())
     index, ids, values_at = [], [], []
     try:
-        sec, nsec = struct.unpack_from("<iI", buf, 4)
-        frame_id, p = _string(buf, 12, _U32, end)
-        p += -p % 4
-        n = words[p >> 2]
-        p += 4
-        if n > (end - p) // 64:  # an entry takes >= 64 bytes
-            raise CdrError(f"{n} variance entries cannot fit in {end} bytes")
         for _ in range(n):
             p += -p % 4
             index.append(words[p >> 2])
@@ -68,7 +51,7 @@ def decode_box_variance_array(data) -> DecodedVariances:
             p = q + (-(q - 4) % 8)
             values_at.append(p)
             p += 56
-    except (IndexError, struct.error) as exc:
+    except IndexError as exc:
         raise CdrError(f"truncated BoxVarianceArray ({end} bytes): {exc}") from None
     if p > end:
         raise CdrError(f"truncated BoxVarianceArray: {end} bytes, need {p}")
@@ -78,7 +61,5 @@ def decode_box_variance_array(data) -> DecodedVariances:
         raise CdrError(f"a detection_id is not UTF-8: {exc}") from None
     at = np.asarray(values_at, dtype=np.int64)
     values = _gather(np.frombuffer(buf, np.uint8), at, 56).view("<f8").reshape(n, 7)
-    h = Header(frame_id=frame_id)
-    h.stamp.sec, h.stamp.nanosec = sec, nsec
     return DecodedVariances(h, np.asarray(index, dtype=np.int64), ids,
                             values.astype(np.float64))
