@@ -80,11 +80,16 @@ def wiring(num_heads: int = 2, autoware: bool = False) -> dict:
     }
 
 
+def autoware_topic(topic: str) -> str:
+    """A node's detections output as it is named in Autoware mode (output/objects)."""
+    return topic.replace("output/detections", "output/objects")
+
+
 def autoware_outputs(outputs: dict) -> dict:
     """``process.OUTPUTS`` with LMD's and MIMO's detections as Autoware's output/objects."""
     objects = "autoware_perception_msgs/msg/DetectedObjects"
-    return {n: tuple((t.replace("output/detections", "output/objects"), objects)
-                     if t.endswith("output/detections") else (t, typ) for t, typ in outs)
+    return {n: tuple((autoware_topic(t), objects) if t.endswith("output/detections")
+                     else (t, typ) for t, typ in outs)
             for n, outs in outputs.items()}
 
 
@@ -310,8 +315,8 @@ def run_live(bag: Path, out: Path, *, rate: float = 1.0, say=print,
     for name, (_, remaps) in wire.items():
         inputs = list(remaps.values())
         main = f"/{name}/{NODES[name][1]}"  # the node's main output
-        if autoware and main.endswith("output/detections"):
-            main = main.replace("output/detections", "output/objects")
+        if autoware:
+            main = autoware_topic(main)
         lat = latencies(pub_times, inputs, rec.received[main])
         frames_in = min(published.get(t, 0) for t in inputs)
         frames_out = rec.count(main)

@@ -157,11 +157,7 @@ def mimo_rows(head_msgs, variance_msgs, gt_msg, uncertainty_msg, settings, *,
     from mimo_ros.pipeline import frame_features
 
     frame = frame_features(head_msgs, variance_msgs, settings)
-    ids = frame.merged_ids()
-    if index_ids:
-        m = frame.merge
-        ids = [f"{frame.heads_used[h]}:{r}" for h, r in zip(
-            m.member_head[m.top_member].tolist(), m.member_index[m.top_member].tolist())]
+    ids = frame.merged_ids(by_index=index_ids)
     c = uncertainty_msg.clusters
     if [x.detection_id for x in c] != list(ids):
         raise Mismatch(f"MIMO recorded {len(c)} merged boxes, the heads give {len(ids)} "

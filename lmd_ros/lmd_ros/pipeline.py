@@ -397,8 +397,8 @@ class LmdOutputs:
     confidence: np.ndarray     # (n,) NaN for invalid boxes
     predicted_iou: np.ndarray  # (n,)
     kept: np.ndarray           # (n,) bool: published on output/detections
-    detections: object         # Detection3DArray, or its serialized bytes for decoded
-    #                            input, or DetectedObjects for Autoware input
+    detections: object         # Detection3DArray, or serialized bytes for decoded input
+    #                            (Detection3DArray; DetectedObjects for Autoware input)
     quality: object            # DetectionQualityArray (every scored box, kept or not)
     markers: object = None     # MarkerArray, or None when not asked for
     #: input problems by key (``"detections"``, ``"frame_id"``, ``"scores"``,

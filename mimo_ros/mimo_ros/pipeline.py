@@ -333,12 +333,14 @@ class MimoFrame:
         m = self.merge
         return np.asarray(self.heads_used, np.intp)[m.member_head[m.top_member]]
 
-    def merged_ids(self) -> list[str]:
-        """``"<head>:<id>"`` of each merged detection's top member."""
+    def merged_ids(self, by_index: bool = False) -> list[str]:
+        """``"<head>:<id>"`` of each merged detection's top member; ``by_index``: its index
+        in its head instead of its id (as for Autoware objects, which have no id)."""
         m = self.merge
         heads = m.member_head[m.top_member].tolist()
         rows = m.member_index[m.top_member].tolist()
-        return [f"{self.heads_used[h]}:{self.arrays[h].ids[r]}" for h, r in zip(heads, rows)]
+        return [f"{self.heads_used[h]}:{r if by_index else self.arrays[h].ids[r]}"
+                for h, r in zip(heads, rows)]
 
     def class_labels(self) -> list[str]:
         """Class name of each merged detection."""
