@@ -18,6 +18,7 @@ setup(
     license="Apache-2.0",
     entry_points={
         "console_scripts": ["demo = lidar_quality_tools.demo:main",
-                            "process_bag = lidar_quality_tools.process:main"],
+                            "process_bag = lidar_quality_tools.process:main",
+                            "process_bags = lidar_quality_tools.fleet:main"],
     },
 )

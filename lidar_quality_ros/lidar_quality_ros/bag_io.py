@@ -174,14 +174,15 @@ def bag_topics(path: Path | str) -> dict[str, str]:
         return {c.topic: c.msgtype for c in r.connections}
 
 
-def read_bag(path: Path | str, topics=None, *, start_ns: int | None = None) -> Iterator[BagMessage]:
-    """Messages of a bag (optionally only ``topics``, only from log time ``start_ns``) in
-    log-time order."""
+def read_bag(path: Path | str, topics=None, *, start_ns: int | None = None,
+             stop_ns: int | None = None) -> Iterator[BagMessage]:
+    """Messages of a bag (optionally only ``topics``, only of log times in [``start_ns``,
+    ``stop_ns``)) in log-time order."""
     with open_bag(path) as r:
         conns = _storage_connections(r, topics)
         if not conns:  # rosbags reads every topic when given no connection
             return
-        for conn, stamp, raw in r.messages(connections=conns, start=start_ns):
+        for conn, stamp, raw in r.messages(connections=conns, start=start_ns, stop=stop_ns):
             yield BagMessage(conn.topic, conn.msgtype, int(stamp), bytes(raw))
 
 
@@ -279,7 +280,14 @@ class BagWriter:
         conn = self._conns.get(topic)
         if conn is None:
             conn = self._conns[topic] = self._add(topic, msgtype, qos, source)
-        raw = msg if isinstance(msg, (bytes, bytearray, memoryview)) else serialize_message(msg)
+        if isinstance(msg, (bytes, bytearray, memoryview)):
+            raw = bytes(msg)
+        else:
+            raw = serialize_message(msg)
+            if msgtype in self._ts.fielddefs:
+                # rclpy leaves CDR alignment padding uninitialised: re-serialised by rosbags
+                # (zero padding), the same message gives the same bytes in every run
+                raw = self._ts.serialize_cdr(self._ts.deserialize_cdr(raw, msgtype), msgtype)
         self._writer.write(conn, int(stamp_ns), bytes(raw))
 
     def _add(self, topic, msgtype, qos, source):

@@ -188,7 +188,8 @@ def _lms(p: dict, topics: dict) -> Runner:
     keys = ("points", "segmentation") if c.separate_probabilities else ("segmentation",)
     return Runner("lms", {k: topic_of(k, topics) for k in keys}, keys,
                   lambda get: proc.process(get(keys[0]),
-                                           get("segmentation") if len(keys) == 2 else None))
+                                           get("segmentation") if len(keys) == 2 else None),
+                  processor=proc)
 
 
 def _mimo(p: dict, names: dict) -> Runner:
@@ -337,7 +338,7 @@ class _Warnings:
             sys.stderr.write(f"{self.nl}{self.bag}: {node}: {text}{more}\n")
 
 
-def _process_frame(frame: _Frame, runners, stats, warn, write) -> None:
+def _process_frame(frame: _Frame, runners, stats, warn, write, collect=None) -> None:
     log_ns = frame.log_ns()
     for r in runners:
         if not any(t in frame.msgs for t in r.topics.values()):
@@ -371,6 +372,8 @@ def _process_frame(frame: _Frame, runners, stats, warn, write) -> None:
         for text in out.notes:   # decisions (e.g. intensity_scale: auto)
             warn(r.name, "note", text)
         st.values.update(out.values)
+        if collect is not None:
+            collect(r.name, frame, out)
         for (topic, msgtype), msg in zip(OUTPUTS[r.name], out.messages.values()):
             write(topic, msgtype, log_ns, msg)
 
@@ -383,8 +386,14 @@ def _check_out(out: Path, overwrite: bool) -> None:
             raise UsageError(f"{out} exists and is not a bag: not overwriting it")
 
 
-def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
-    """Process ``in_bag`` into ``out_bag`` (replaced if it exists, only once complete)."""
+def _run(in_bag: Path, out_bag: Path | None, runners, *, progress: bool, window=None,
+         collect=None, on_frame=None, extra_topics=()) -> dict:
+    """Process ``in_bag`` into ``out_bag`` (replaced if it exists, only once complete; None:
+    no output bag). ``window``: ``(start_ns, stop_ns)``, only the frames whose cloud is
+    logged in it (a slice of a long bag; the transforms from before it still apply);
+    ``collect(node, frame, outputs)`` sees every processed frame (``fleet.ResultRows``),
+    ``on_frame()`` is called after each frame; ``extra_topics`` (e.g. ground truth for
+    ``collect``) are grouped into the frames too where the bag has them."""
     from lidar_quality_core.progress import Progress
     from lidar_quality_ros.bag_io import UnknownTypes, atomic_output, bag_info
 
@@ -397,6 +406,7 @@ def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
                            "copied to the output unchanged, not decoded")
     known = set(unknown.check_all({t: i.msgtype for t, i in info.topics.items()}))
     wanted = {t for r in runners for t in r.topics.values() if t in known}
+    wanted |= {t for t in extra_topics if t in known}
     stats = {r.name: NodeStats() for r in runners}
     for r in runners:
         absent = [t for t in r.topics.values() if t not in known]
@@ -406,15 +416,21 @@ def _run(in_bag: Path, out_bag: Path, runners, *, progress: bool) -> dict:
             warn(r.name, "absent_topics", f"topics not in the bag: {', '.join(absent)}" + (
                 f" ({', '.join(undecodable)}: type not available here)" if undecodable else ""))
     bar = Progress(f"{in_bag.name}", max((info.topics[t].count for t in wanted), default=0),
-                   enabled=progress)
+                   enabled=progress and window is None)
+    step = bar.update if on_frame is None else (lambda: (bar.update(), on_frame()))
     try:
-        with atomic_output(out_bag, overwrite=True) as tmp:
-            n_frames, copied, late = _write(in_bag, tmp, runners, info, wanted, stats, warn,
-                                            bar)
+        if out_bag is None:
+            n_frames, copied, late = _write(in_bag, None, runners, info, wanted, stats, warn,
+                                            step, window, collect)
+        else:
+            with atomic_output(out_bag, overwrite=True) as tmp:
+                n_frames, copied, late = _write(in_bag, tmp, runners, info, wanted, stats,
+                                                warn, step, window, collect)
     finally:
         bar.close()
     nodes = {name: st.summary() for name, st in stats.items()}
-    return {"in": str(in_bag), "out": str(out_bag), "frames": n_frames, "messages_copied": copied,
+    return {"in": str(in_bag), "out": str(out_bag) if out_bag else None, "frames": n_frames,
+            "window": list(window) if window else None, "messages_copied": copied,
             "messages_not_processed": dict(late),
             "unknown_types": {ty: list(ts) for ty, ts in unknown.seen.items()},
             "metadata_fixes": list(info.fixes),
@@ -449,7 +465,37 @@ def _transform_feed(runners, warn) -> Callable:
     return feed
 
 
-def _write(in_bag: Path, out_bag: Path, runners, info, wanted, stats, warn, bar):
+class _NoBag:
+    """The writer when no output bag is asked for."""
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        return None
+
+    def write(self, *args, **kwargs) -> None:
+        return None
+
+
+#: a slice reads this much of the bag before and after its window: frames whose messages
+#: straddle the boundary are complete in the slice their cloud belongs to
+SLICE_MARGIN_NS = 2_000_000_000
+
+
+def _slice_messages(in_bag: Path, window, feed_tf):
+    """The messages of ``window`` plus ``SLICE_MARGIN_NS`` either side; the transforms
+    logged before that fed first (/tf_static is recorded once, at the bag's start)."""
+    from lidar_quality_ros.bag_io import read_bag
+
+    start = window[0] - SLICE_MARGIN_NS
+    for m in read_bag(in_bag, {"/tf_static", "/tf"}, stop_ns=max(start, 0)):
+        feed_tf(m)
+    yield from read_bag(in_bag, start_ns=max(start, 0), stop_ns=window[1] + SLICE_MARGIN_NS)
+
+
+def _write(in_bag: Path, out_bag: Path | None, runners, info, wanted, stats, warn, step,
+           window=None, collect=None):
     from lidar_quality_ros.bag_io import BagWriter, read_bag
     from lidar_quality_ros.qos import output_qos
 
@@ -459,7 +505,8 @@ def _write(in_bag: Path, out_bag: Path, runners, info, wanted, stats, warn, bar)
     backlog: list = []                 # input messages read, not yet written (log order)
     last_done, late, copied, n_frames = None, Counter(), 0, 0
     feed_tf = _transform_feed(runners, warn)
-    with BagWriter(out_bag) as w:
+    lo, hi = window if window else (-1, float("inf"))
+    with BagWriter(out_bag) if out_bag is not None else _NoBag() as w:
         def write(topic, msgtype, log_ns, msg):
             qos = [output_qos(5 if topic == "/lms/output/points" else 10)]
             w.write(topic, msgtype, log_ns, msg, qos=qos)
@@ -467,12 +514,16 @@ def _write(in_bag: Path, out_bag: Path, runners, info, wanted, stats, warn, bar)
         def drain(upto: float) -> None:   # copy input messages logged up to ``upto``
             nonlocal copied
             k = 0
+            n = 0
             while k < len(backlog) and backlog[k].stamp_ns <= upto:
                 m = backlog[k]
+                k += 1
+                if not lo <= m.stamp_ns < hi:
+                    continue       # another slice's
                 t = info.topics[m.topic]
                 w.write(m.topic, m.msgtype, m.stamp_ns, m.raw, qos=t.qos, source=t)
-                k += 1
-            copied += k
+                n += 1
+            copied += n
             del backlog[:k]
 
         def flush(keep: int) -> None:  # oldest frames: complete ones, or beyond ``keep``
@@ -484,11 +535,15 @@ def _write(in_bag: Path, out_bag: Path, runners, info, wanted, stats, warn, bar)
                     break
                 del pending[oldest]
                 drain(f.log_ns())
-                _process_frame(f, runners, stats, warn, write)
-                last_done, n_frames = oldest, n_frames + 1
-                bar.update()
+                last_done = oldest
+                if not lo <= f.log_ns() < hi:
+                    continue       # another slice's frame
+                _process_frame(f, runners, stats, warn, write, collect)
+                n_frames += 1
+                step()
 
-        for m in read_bag(in_bag):
+        messages = _slice_messages(in_bag, window, feed_tf) if window else read_bag(in_bag)
+        for m in messages:
             backlog.append(m)
             feed_tf(m)
             if m.topic in wanted:
@@ -498,11 +553,13 @@ def _write(in_bag: Path, out_bag: Path, runners, info, wanted, stats, warn, bar)
                     stamp = exc
                 if isinstance(stamp, Exception) or (last_done is not None and stamp <= last_done):
                     why = "unreadable_stamp" if isinstance(stamp, Exception) else "late"
-                    late[why] += 1
-                    for r in runners:
-                        if m.topic in r.topics.values():
-                            warn(r.name, why, f"{m.topic} message at log time {m.stamp_ns} "
-                                              f"not processed ({why}): copied only")
+                    if lo <= m.stamp_ns < hi:   # a margin's message is another slice's
+                        late[why] += 1
+                        for r in runners:
+                            if m.topic in r.topics.values():
+                                warn(r.name, why, f"{m.topic} message at log time "
+                                                  f"{m.stamp_ns} not processed ({why}): "
+                                                  "copied only")
                 else:
                     pending.setdefault(stamp, _Frame(stamp, points_topic)).msgs[m.topic] = m
                     flush(WINDOW)
@@ -537,20 +594,47 @@ def no_output_reasons(nodes: dict, bag_topics: list, not_processed: dict | None 
     return out
 
 
+def process_one(in_bag: Path, out_bag: Path | None, runners, *, results: Path | None = None,
+                part: str = "part-0000", name: str | None = None, topics: dict | None = None,
+                window=None, progress: bool = False, on_frame=None) -> dict:
+    """One bag (or the slice ``window`` of it) into ``out_bag`` (None: no output bag) and,
+    with ``results``, its result tables (``result_tables``) as
+    ``results/<node>/bag=<name>/<part>.parquet``; the summary lists them (``"results"``)."""
+    from lidar_quality_ros.perception_bag import bag_group
+
+    from .result_tables import ResultRows, write_table
+
+    in_bag = Path(in_bag)
+    rows = gt = None
+    if results is not None:
+        gt = {k: topic_of(k, topics) for k in ("gt_objects", "points_gt")}
+        rows = ResultRows(runners, source=str(in_bag), group=bag_group(in_bag), gt_topics=gt)
+    summary = _run(in_bag, out_bag, runners, progress=progress, window=window,
+                   collect=rows.collect if rows else None, on_frame=on_frame,
+                   extra_topics=tuple(gt.values()) if gt else ())
+    files = {}
+    if rows is not None:
+        for node, table in rows.tables().items():
+            path = Path(results) / node / f"bag={name or in_bag.name}" / f"{part}.parquet"
+            files[node] = str(write_table(table, path))
+    summary["results"] = files
+    return summary
+
+
 def process_bag(in_bag, out_bag, *, nodes=tuple(NODES), params: dict | None = None,
                 topics: dict | None = None, progress: bool = True,
-                overwrite: bool = False) -> dict:
+                overwrite: bool = False, results=None) -> dict:
     """Process one bag into ``out_bag``; returns the summary (JSON-able). ``topics``: input
-    key -> bag topic (``--topic``). Bad arguments raise ``UsageError`` before anything is
-    written."""
+    key -> bag topic (``--topic``); ``results``: a folder for the result tables
+    (``process_one``). Bad arguments raise ``UsageError`` before anything is written."""
     in_bag, out_bag = Path(in_bag), Path(out_bag)
     nodes = nodes.split(",") if isinstance(nodes, str) else nodes
     if not (in_bag / "metadata.yaml").exists():
         raise UsageError(f"{in_bag}: not a rosbag2 directory")
     _plan([in_bag], out_bag)
     _check_out(out_bag, overwrite)
-    return _run(in_bag, out_bag, build_runners(tuple(nodes), params, topics),
-                progress=progress)
+    return process_one(in_bag, out_bag, build_runners(tuple(nodes), params, topics),
+                       results=results, topics=topics, progress=progress)
 
 
 # ----------------------------------------------------------------------- command line

@@ -1,0 +1,213 @@
+"""Per-detection and per-segment results of the nodes as Parquet tables (pyarrow).
+
+One row per scored item of a processed frame, in output order:
+
+* ``lmd``: every detection the node scored (``valid`` false: no features, NaN values);
+* ``mimo``: every merged detection;
+* ``lms``: every kept segment (the ones with metrics and a confidence).
+
+Columns (the names the feature tables of ``lidar_quality_training.feature_table`` use, so
+that a table of labelled bags trains a meta model): ``group`` (``bag_group``), ``source``
+(the bag), ``frame_key`` (header stamp [ns] as text), ``stamp_ns``, ``frame_id``,
+``index`` (position among the frame's items: detection index, merged index or segment
+id), the outputs ``confidence``, ``predicted_iou`` and (detections) ``kept``, the
+features as ``feat.<name>`` in the model's order, and per method:
+
+* ``lmd`` / ``mimo``: ``det_id``, ``label``, ``score``, ``box_x`` .. ``box_yaw``, ``valid``
+  (lmd); targets ``iou_any`` / ``iou_class`` (IoU_BEV with the best ground-truth box of
+  any / the same class, ``detection_eval.match_frame``) when the bag has ground-truth
+  objects (``gt_objects`` topic), else NaN;
+* ``lms``: ``segment_class`` (class index), ``label`` (its name), ``size``,
+  ``size_projected``, ``n_points``; targets ``iou`` / ``iou_adj``
+  (``lms.targets.segment_targets``, label 0 ignored) when the bag has the ground-truth
+  cloud (``points_gt`` topic, one label per input point), else NaN.
+
+Schema metadata: ``lq.method``, ``lq.mode``, ``lq.feature_names`` (JSON), ``lq.settings``
+(JSON), ``lq.models`` (JSON: the model ids), ``lq.version``.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["VERSION", "FEATURE_PREFIX", "BOX_COLUMNS", "ResultRows", "write_table"]
+
+VERSION = "1"
+FEATURE_PREFIX = "feat."
+BOX_COLUMNS = ("box_x", "box_y", "box_z", "box_l", "box_w", "box_h", "box_yaw")
+IGNORE_LABEL = 0   # the LMS datasets' unlabelled class
+
+
+def _text(values, n) -> np.ndarray:
+    return np.array([str(v) for v in values], dtype=object).reshape(n)
+
+
+class ResultRows:
+    """Collects the rows of one bag (or slice): ``collect(node, frame, outputs)`` is the
+    hook of ``process._run``; ``tables()`` gives one pyarrow Table per node with rows."""
+
+    def __init__(self, runners, *, source: str, group: str, gt_topics: dict | None = None):
+        self.source, self.group = str(source), group
+        self.gt = dict(gt_topics or {})          # "gt_objects" / "points_gt" -> topic
+        self.parts: dict[str, list[dict]] = {r.name: [] for r in runners}
+        self.meta = {r.name: _meta(r) for r in runners}
+
+    def collect(self, node: str, frame, out) -> None:
+        rows = {"lmd": self._lmd, "mimo": self._mimo, "lms": self._lms}[node](frame, out)
+        n = len(rows["index"])
+        rows = {"group": _text([self.group] * n, n), "source": _text([self.source] * n, n),
+                "frame_key": _text([frame.stamp_ns] * n, n),
+                "stamp_ns": np.full(n, frame.stamp_ns, np.int64), **rows}
+        self.parts[node].append(rows)
+
+    def _gt(self, frame, key):
+        topic = self.gt.get(key)
+        if topic is None or topic not in frame.msgs:
+            return None
+        try:
+            return frame.get(topic)
+        except Exception:  # noqa: BLE001 - undecodable ground truth: rows without targets
+            return None
+
+    def _box_targets(self, frame, boxes, scores, labels, ok):
+        """``(iou_any, iou_class)`` of the rows ``ok`` against the frame's ground truth."""
+        from lidar_quality_core.boxes import detections_to_arrays
+        from lidar_quality_core.conventions import TP_IOU
+        from lidar_quality_core.detection_eval import match_frame
+
+        n = len(scores)
+        iou_any, iou_class = np.full(n, np.nan), np.full(n, np.nan)
+        msg = self._gt(frame, "gt_objects")
+        if msg is None:
+            return iou_any, iou_class
+        gt = msg.arrays if hasattr(msg, "arrays") else detections_to_arrays(msg)
+        idx = np.flatnonzero(ok)
+        m = match_frame(boxes[idx], scores[idx], [labels[i] for i in idx.tolist()],
+                        gt.boxes[gt.valid], [c for c, v in zip(gt.labels, gt.valid) if v],
+                        iou_threshold=TP_IOU)
+        iou_any[idx], iou_class[idx] = m.iou_any, m.iou_same_class
+        return iou_any, iou_class
+
+    def _lmd(self, frame, out) -> dict:
+        f = out.frame
+        d, n = f.detections, len(f.detections)
+        boxes = np.asarray(d.boxes, np.float64).reshape(n, 7)
+        iou_any, iou_class = self._box_targets(frame, boxes, d.scores, d.labels, f.valid)
+        return {"frame_id": _text([_frame_id(f.header)] * n, n),
+                "index": np.arange(n, dtype=np.int32), "det_id": _text(d.ids, n),
+                "label": _text(d.labels, n), "score": np.asarray(d.scores, np.float64),
+                **{c: boxes[:, j] for j, c in enumerate(BOX_COLUMNS)},
+                "valid": np.asarray(f.valid, bool),
+                "confidence": np.asarray(out.confidence, np.float64),
+                "predicted_iou": np.asarray(out.predicted_iou, np.float64),
+                "kept": np.asarray(out.kept, bool),
+                "iou_any": iou_any, "iou_class": iou_class,
+                **_features(self.meta["lmd"]["feature_names"], f.features, n)}
+
+    def _mimo(self, frame, out) -> dict:
+        o = out.out
+        fr, m = o.frame, o.frame.merge
+        n = len(m.scores)
+        labels = [fr.class_names[int(c) - 1] for c in m.labels]
+        boxes = np.asarray(m.boxes, np.float64).reshape(n, 7)
+        iou_any, iou_class = self._box_targets(frame, boxes, m.scores, labels, np.ones(n, bool))
+        kept = np.ones(n, bool) if o.kept is None else np.asarray(o.kept, bool)
+        return {"frame_id": _text([_frame_id(getattr(o.uncertainty, "header", None))] * n, n),
+                "index": np.arange(n, dtype=np.int32), "det_id": _text(fr.merged_ids(), n),
+                "label": _text(labels, n), "score": np.asarray(m.scores, np.float64),
+                **{c: boxes[:, j] for j, c in enumerate(BOX_COLUMNS)},
+                "confidence": np.asarray(o.confidence, np.float64),
+                "predicted_iou": np.asarray(o.predicted_iou, np.float64), "kept": kept,
+                "iou_any": iou_any, "iou_class": iou_class,
+                **_features(self.meta["mimo"]["feature_names"], fr.features, n)}
+
+    def _lms(self, frame, out) -> dict:
+        res = out.result
+        ids = np.asarray(res.kept_ids, np.int64)
+        n = len(ids)
+        iou, iou_adj = np.full(n, np.nan), np.full(n, np.nan)
+        gt_msg = self._gt(frame, "points_gt")
+        if gt_msg is not None:
+            from lidar_quality_core.lms.targets import segment_targets
+            from lidar_quality_core.pointcloud import read_fields
+
+            try:
+                gt = read_fields(gt_msg, ["label"], dtype=np.int64)[:, 0]
+                iou, iou_adj = segment_targets(res, gt, ignore_label=IGNORE_LABEL)
+            except (ValueError, KeyError):   # another cloud (point count) or no label field
+                pass
+        cls = np.asarray(res.segment_class)[ids].astype(np.int64)
+        names = res.class_names or ()
+        label = [names[c] if 0 <= c < len(names) else str(c) for c in cls.tolist()]
+        self.meta["lms"]["feature_names"] = list(res.names)
+        return {"frame_id": _text([_frame_id(getattr(out.segments, "header", None))] * n, n),
+                "index": ids.astype(np.int32), "segment_class": cls, "label": _text(label, n),
+                "size": np.asarray(res.size)[ids].astype(np.int64),
+                "size_projected": np.asarray(res.size_projected)[ids].astype(np.int64),
+                "n_points": np.asarray(res.n_points)[ids].astype(np.int64),
+                "confidence": np.asarray(out.confidence, np.float64)[ids],
+                "predicted_iou": np.asarray(out.predicted_iou, np.float64)[ids],
+                "iou": np.asarray(iou, np.float64), "iou_adj": np.asarray(iou_adj, np.float64),
+                **_features(res.names, res.features, n)}
+
+    def tables(self) -> dict:
+        """node -> pyarrow Table of its rows (nodes without a row are left out)."""
+        import pyarrow as pa
+
+        out = {}
+        for node, parts in self.parts.items():
+            if not parts:
+                continue
+            cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
+            table = pa.table({k: pa.array(v) for k, v in cols.items()})
+            meta = {f"lq.{k}": json.dumps(v) if not isinstance(v, str) else v
+                    for k, v in self.meta[node].items()}
+            out[node] = table.replace_schema_metadata({**meta, "lq.version": VERSION})
+        return out
+
+
+def _frame_id(header) -> str:
+    return getattr(header, "frame_id", "") or ""
+
+
+def _features(names, X, n) -> dict:
+    X = np.asarray(X, np.float64).reshape(n, len(names))
+    return {FEATURE_PREFIX + name: np.ascontiguousarray(X[:, j]) for j, name in enumerate(names)}
+
+
+def _settings_json(settings) -> dict:
+    d = dataclasses.asdict(settings) if dataclasses.is_dataclass(settings) else {}
+    return json.loads(json.dumps(d, default=str))
+
+
+def _meta(runner) -> dict:
+    """The table metadata of a runner's node: method, mode, features, settings, models."""
+    proc = runner.processor
+    s = getattr(proc, "settings", None)
+    models = getattr(proc, "models", None)
+    ids = {"confidence": getattr(models, "confidence_model_id", ""),
+           "iou": getattr(models, "iou_model_id", "")}
+    if runner.name == "lmd":
+        mode, names = s.proposal_mode, list(s.feature_names())
+    elif runner.name == "mimo":
+        mode, names = "points" if s.use_points else "no_points", list(s.feature_names())
+    else:
+        mode, names = "segments", []   # the metric names come with the first frame
+    return {"method": runner.name, "mode": mode, "feature_names": names,
+            "settings": _settings_json(s), "models": ids}
+
+
+def write_table(table, path: Path | str) -> Path:
+    """Write ``table`` to ``path`` (Parquet) atomically: a temporary file renamed."""
+    import pyarrow.parquet as pq
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    pq.write_table(table, tmp)
+    os.replace(tmp, path)
+    return path
