@@ -1,6 +1,6 @@
 """``process_bag``: the three quality nodes over recorded perception bags, offline (no DDS).
 
-    process_bag --bag IN [--bag IN2 ...] --out OUT [--nodes lmd,lms,mimo]
+    process_bag --bag IN [--bag IN2 ...] --out OUT [--nodes lmd,lms,mimo] [--results DIR]
                 [--topic points=/sensing/lidar/top/pointcloud ...]
                 [--param lmd.proposal_mode=exact ...] [--overwrite] [--no-progress]
 
@@ -734,6 +734,9 @@ def main(argv=None) -> int:
     ap.add_argument("--param", action="append", default=[], metavar="NODE.NAME=VALUE",
                     help="override a node parameter of its config YAML (repeatable)")
     add_topic_option(ap)
+    ap.add_argument("--results", type=Path, metavar="DIR", help="also write the result "
+                    "tables (Parquet, one row per scored detection / segment with its "
+                    "features): DIR/<node>/bag=<name>/part-0000.parquet")
     ap.add_argument("--overwrite", action="store_true", help="replace existing (complete) "
                     "output bags")
     ap.add_argument("--no-progress", action="store_true", help="no progress line on stderr")
@@ -754,7 +757,9 @@ def main(argv=None) -> int:
     summaries, unreadable = [], []
     for b, o in pairs:
         try:
-            summaries.append(_run(b, o, runners, progress=not args.no_progress))
+            summaries.append(process_one(b, o, runners, results=args.results,
+                                         topics=dict(args.topic),
+                                         progress=not args.no_progress))
         except KeyboardInterrupt:
             print(f"\nprocess_bag: interrupted: no output bag written for {b} (nor after it)",
                   file=sys.stderr)
