@@ -19,6 +19,7 @@ setup(
     entry_points={
         "console_scripts": ["demo = lidar_quality_tools.demo:main",
                             "process_bag = lidar_quality_tools.process:main",
-                            "process_bags = lidar_quality_tools.fleet:main"],
+                            "process_bags = lidar_quality_tools.fleet:main",
+                            "fleet_review = lidar_quality_tools.fleet_review:main"],
     },
 )
