@@ -59,10 +59,10 @@ def _bags() -> Path:
 
 
 def _cluster(n: int):
-    from distributed import Client, LocalCluster
+    from distributed import Client
+    from lidar_quality_tools.fleet import local_cluster
 
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           host="127.0.0.1", dashboard_address="127.0.0.1:0")
+    cluster = local_cluster(n)
     return cluster, Client(cluster)
 
 

@@ -14,8 +14,9 @@ longer bag (frames whose cloud is logged in the slice; default 600 s). Each task
     OUT/tasks/<task>.json                  the task's status, summary and run key
     OUT/manifest.json                      code, models, settings, every task's status
 
-By default a ``distributed.LocalCluster`` on this machine (one single-threaded worker
-process per core, bound to 127.0.0.1; its dashboard address is printed); ``--scheduler``
+By default a ``distributed.LocalCluster`` on this machine (``local_cluster``: one
+single-threaded worker process per core, bound to 127.0.0.1; its dashboard address is
+printed); ``--scheduler``
 or ``--scheduler-file`` uses an existing cluster, whose workers must have this suite
 installed and see the bags and OUT at the same paths.
 
@@ -43,7 +44,7 @@ from pathlib import Path
 from .process import NODES, UsageError, _parse_params, build_runners, node_parameters
 
 __all__ = ["Task", "RunSpec", "plan_tasks", "resolve_inputs", "run_task", "process_bags",
-           "status_table", "main"]
+           "worker_environ", "local_cluster", "status_table", "main"]
 
 DEFAULT_SLICE_S = 600.0
 PROGRESS_TOPIC = "lq-frames"     # workers' frame events to the client's progress bar
@@ -287,20 +288,90 @@ def _skip(out: Path, task: Task, key: str) -> dict | None:
     return {**st, "skipped": True}
 
 
+def _part(path: Path) -> int | None:
+    name = path.name.split(".")[0]
+    return int(name[5:]) if name.startswith("part-") and name[5:].isdigit() else None
+
+
+def _clear_stale(out: Path, tasks: list[Task], todo: list[Task]) -> None:
+    """Remove what an earlier run left of the bags about to be processed and does not
+    belong to a task kept as done: another slicing's parts, other nodes' tables, a bag
+    written before. The Parquet dataset then holds exactly this run's rows."""
+    pending = {t.id for t in todo}
+    names = {t.name for t in todo}
+    for name in names:
+        mine = [t for t in tasks if t.name == name]
+        keep = {t.part for t in mine if t.id not in pending}
+        sliced = mine[0].parts > 1
+        for f in (out / "results").glob(f"*/bag={name}/*.parquet"):
+            if _part(f) not in keep:
+                f.unlink()
+        bag = out / "bags" / name
+        if bag.is_dir():
+            if not sliced or (bag / "metadata.yaml").exists():
+                if not keep:
+                    shutil.rmtree(bag)
+            else:
+                for p in bag.glob("part-*"):
+                    if _part(p) not in keep:
+                        shutil.rmtree(p)
+        for f in (out / "tasks").glob(f"{name}*.json"):
+            stem = f.name[:-5]
+            if stem == name or stem.startswith(f"{name}.part-"):
+                if stem not in {t.id for t in mine if t.id not in pending}:
+                    f.unlink()
+
+
 # ----------------------------------------------------------------------- the run
+def worker_environ() -> dict:
+    """The environment Dask's nannies give new worker processes, without the
+    ``MALLOC_TRIM_THRESHOLD_`` that distributed sets by default: an explicit trim
+    threshold turns off glibc's dynamic mmap threshold, and every large array is then a
+    fresh mmap: the frame work ran 2x slower (bench_fleet)."""
+    import dask
+    import distributed  # noqa: F401 - registers distributed's configuration defaults
+
+    env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
+    env.pop("MALLOC_TRIM_THRESHOLD_", None)
+    return env
+
+
+def local_cluster(n_workers: int):
+    """A LocalCluster for the tasks: ``n_workers`` single-threaded processes on 127.0.0.1
+    (dashboard on a free port), started with ``worker_environ``."""
+    import dask
+    from distributed import LocalCluster
+
+    with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environ()}):
+        return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
+                            host="127.0.0.1", dashboard_address="127.0.0.1:0")
+
+
+def _trim_note(client, say) -> None:
+    """Say so when an existing cluster's workers run with the slow allocator setting."""
+    try:
+        envs = client.run(lambda: os.environ.get("MALLOC_TRIM_THRESHOLD_"))
+    except Exception:  # noqa: BLE001 - only a note: a cluster that refuses run() still works
+        return
+    if any(v is not None for v in envs.values()):
+        say("process_bags: note: the workers run with MALLOC_TRIM_THRESHOLD_ set (Dask's "
+            "default), which makes the frame work about 2x slower; start them without it "
+            "(README, 'Running over a fleet')")
+
+
 def _cluster(scheduler: str | None, scheduler_file: str | None, workers: int | None, say):
     """A ``distributed.Client``: to an existing scheduler, or to a new LocalCluster."""
-    from distributed import Client, LocalCluster
+    from distributed import Client
 
     if scheduler or scheduler_file:
         client = Client(scheduler, scheduler_file=scheduler_file, timeout="30s")
         say(f"process_bags: cluster {client.scheduler.address} "
             f"({len(client.scheduler_info()['workers'])} workers), dashboard "
             f"{client.dashboard_link}")
+        _trim_note(client, say)
         return client, None
     n = workers or os.cpu_count() or 1
-    cluster = LocalCluster(n_workers=n, threads_per_worker=1, processes=True,
-                           host="127.0.0.1", dashboard_address="127.0.0.1:0")
+    cluster = local_cluster(n)
     client = Client(cluster)
     say(f"process_bags: local cluster of {n} worker process(es), dashboard "
         f"{cluster.dashboard_link}")
@@ -354,6 +425,7 @@ def process_bags(bags, out, *, nodes=tuple(NODES), params: dict | None = None,
         f"{len(tasks) - len(todo)} already done")
     t0 = time.perf_counter()
     own = None
+    _clear_stale(out, tasks, todo)
     if todo:
         if client is None:
             client, own = _cluster(scheduler, scheduler_file, workers, say)

@@ -11,9 +11,10 @@ import time
 
 import pyarrow.parquet as pq
 import pytest
-from distributed import Client, LocalCluster
+from distributed import Client
 from lidar_quality_ros.bag_io import read_bag
-from lidar_quality_tools.fleet import main, plan_tasks, process_bags, resolve_inputs
+from lidar_quality_tools.fleet import (local_cluster, main, plan_tasks, process_bags,
+                                       resolve_inputs)
 from lidar_quality_tools.process import NODES, UsageError, process_bag
 from perception_bags import simulated_perception_bags
 from reference_perception.cli import Perception
@@ -40,8 +41,7 @@ def sequential(bags, tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def client():
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0") as cluster, Client(cluster) as c:
+    with local_cluster(2) as cluster, Client(cluster) as c:
         yield c
 
 
@@ -67,6 +67,8 @@ def assert_same_outputs(out, sequential, names):
 
 
 def test_two_workers_equal_sequential_runs_and_rerun_skips(bags, sequential, client, tmp_path):
+    # local_cluster's workers run without Dask's MALLOC_TRIM_THRESHOLD_ (2x slower frames)
+    assert set(client.run(os.environ.get, "MALLOC_TRIM_THRESHOLD_").values()) == {None}
     out = tmp_path / "fleet"
     m = process_bags([bags], out, client=client, progress=False)
     names = sorted(b.name for b in bags.iterdir())
@@ -93,8 +95,7 @@ def test_two_workers_equal_sequential_runs_and_rerun_skips(bags, sequential, cli
 def test_killed_worker_loses_no_bag(bags, sequential, tmp_path):
     out = tmp_path / "fleet"
     names = sorted(b.name for b in bags.iterdir())
-    with LocalCluster(n_workers=2, threads_per_worker=1, processes=True, host="127.0.0.1",
-                      dashboard_address="127.0.0.1:0") as cluster, Client(cluster) as c:
+    with local_cluster(2) as cluster, Client(cluster) as c:
         result = {}
         run = threading.Thread(target=lambda: result.update(
             m=process_bags([bags], out, client=c, progress=False)))
@@ -156,6 +157,12 @@ def test_slices_add_up_to_the_bag(bags, sequential, client, tmp_path):
             (out / "results" / node / "bag=seq_02").glob("*.parquet")))
         want = pq.read_table(sequential / f"results/{node}/bag=seq_02/part-0000.parquet")
         assert got.equals(want), node
+    # the same OUT without slices: nothing of the sliced run is left beside the new outputs
+    m = process_bags([bag], out, client=client, progress=False, slice_s=None, nodes="lmd")
+    assert [r["task"] for r in m["tasks"]] == ["seq_02"]
+    assert sorted(p.name for p in (out / "results").rglob("*.parquet")) == ["part-0000.parquet"]
+    assert messages(out / "bags" / "seq_02")
+    assert sorted(p.name for p in (out / "tasks").iterdir()) == ["seq_02.json"]
 
 
 def test_inputs_globs_and_list_files(bags, tmp_path):
