@@ -431,11 +431,21 @@ def process_bags(bags, out, *, nodes=tuple(NODES), params: dict | None = None,
             client, own = _cluster(scheduler, scheduler_file, workers, say)
             own = (client, own)
         total = sum(t.frames for t in todo)
-        bar = Progress(f"process_bags: {len(todo)} task(s), frames", total or None,
+        bar = Progress("process_bags: frames", total or None,
                        enabled=progress)
-        client.subscribe_topic(PROGRESS_TOPIC, lambda ev: bar.update(ev[1]["frames"]))
+        finished = [0]
+
+        def tasks_note() -> str:
+            return f"tasks {finished[0]}/{len(todo)}"
+
+        def task_done() -> None:
+            finished[0] += 1
+            bar.update(0, tasks_note())
+
+        client.subscribe_topic(PROGRESS_TOPIC,
+                               lambda ev: bar.update(ev[1]["frames"], tasks_note()))
         try:
-            results.update(_submit(client, todo, spec, keys, say))
+            results.update(_submit(client, todo, spec, keys, say, task_done))
         finally:
             client.unsubscribe_topic(PROGRESS_TOPIC)
             bar.close()
@@ -454,7 +464,7 @@ def process_bags(bags, out, *, nodes=tuple(NODES), params: dict | None = None,
     return manifest
 
 
-def _submit(client, todo, spec, keys, say) -> dict:
+def _submit(client, todo, spec, keys, say, task_done) -> dict:
     """Submit every task (longest bags first), collect the statuses as they finish."""
     from distributed import as_completed
 
@@ -475,6 +485,7 @@ def _submit(client, todo, spec, keys, say) -> dict:
         if st["status"] != "done":
             say(f"process_bags: FAILED: {t.id} ({t.bag}): {st.get('error')}")
         out[t.id] = st
+        task_done()
     return out
 
 
