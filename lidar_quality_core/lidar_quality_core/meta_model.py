@@ -50,8 +50,9 @@ from .model_store import (LoadedModel, ModelStoreError, ModelStoreWarning, Setti
                           check_training_settings, load_model, read_manifest, save_model)
 from .parameters import param
 
-__all__ = ["KINDS", "TASKS", "make_estimator", "fit_estimator", "predict", "group_folds",
-           "FoldMetrics", "CVResult", "cross_validate", "GreedyResult", "greedy_selection",
+__all__ = ["KINDS", "TASKS", "make_estimator", "fit_estimator", "training_arrays", "predict",
+           "group_folds", "FoldMetrics", "CVResult", "fit_folds", "cross_validate",
+           "GreedyResult", "greedy_selection",
            "SETTINGS_SECTION", "SETTING_RULES", "settings_record", "check_settings",
            "MetaModels", "save_pair", "SIMULATED_DATA_DIR", "simulated_sources",
            "cv_folds_arg", "cv_fold_count"]
@@ -110,7 +111,9 @@ def make_estimator(kind: str, task: str, *, seed: int = 0, n_jobs: int = 1):
                              random_state=seed))
 
 
-def _xy(X, y, task):
+def training_arrays(X, y, task: str):
+    """``(X, y)`` as the estimators take them: float64 ``(n, d)`` and finite ``(n,)``;
+    classification ``y`` 0/1 as int64. ``ValueError`` naming what is wrong otherwise."""
     X = np.asarray(X, dtype=np.float64)
     y = np.asarray(y, dtype=np.float64).reshape(-1)
     if X.ndim != 2 or X.shape[0] != y.shape[0]:
@@ -126,7 +129,7 @@ def _xy(X, y, task):
 
 def fit_estimator(kind: str, task: str, X, y, *, seed: int = 0, n_jobs: int = 1):
     """Fit a new ``kind`` estimator on ``(X, y)``; classification ``y`` is 0/1."""
-    X, y = _xy(X, y, task)
+    X, y = training_arrays(X, y, task)
     if task == "classification" and np.unique(y).size < 2:
         raise ValueError("classification needs both classes in the training data")
     est = make_estimator(kind, task, seed=seed, n_jobs=n_jobs)
@@ -238,19 +241,32 @@ class CVResult:
         return out
 
 
+def fit_folds(kind: str, task: str, X, y, folds, *, seed: int = 0, n_jobs: int = 1):
+    """One ``kind`` model per fold of ``folds`` (``[(train_idx, val_idx), ...]``), fitted
+    on the fold's training rows; a generator, each fitted when asked for."""
+    for tr, _ in folds:
+        yield fit_estimator(kind, task, X[tr], y[tr], seed=seed, n_jobs=n_jobs)
+
+
 def cross_validate(X, y, groups, *, task: str, kind: str = "xgboost", n_folds: int = 10,
                    seed: int = 0, n_jobs: int = 1,
-                   progress: Callable[[int, int], None] | None = None) -> CVResult:
-    """Grouped ``n_folds`` cross validation of a ``kind`` model on ``(X, y)``."""
+                   progress: Callable[[int, int], None] | None = None,
+                   fold_fitter: Callable | None = None) -> CVResult:
+    """Grouped ``n_folds`` cross validation of a ``kind`` model on ``(X, y)``.
+
+    ``fold_fitter``: fits the fold models, with the signature of :func:`fit_folds` (the
+    default, on this machine); ``lidar_quality_training.distributed_training`` passes one
+    that fits them on a Dask cluster. Predictions and metrics are computed here."""
     _check(kind, task)
-    X, y = _xy(X, y, task)
+    X, y = training_arrays(X, y, task)
     folds = group_folds(groups, n_folds, seed=seed)
-    oof = np.full(y.shape[0], np.nan)
-    result = []
-    for f, (tr, va) in enumerate(folds):
+    for f, (tr, _) in enumerate(folds):  # before any fit
         if task == "classification" and np.unique(y[tr]).size < 2:
             raise ValueError(f"fold {f}: training part holds one class only")
-        est = fit_estimator(kind, task, X[tr], y[tr], seed=seed, n_jobs=n_jobs)
+    oof = np.full(y.shape[0], np.nan)
+    result = []
+    models = (fold_fitter or fit_folds)(kind, task, X, y, folds, seed=seed, n_jobs=n_jobs)
+    for f, ((tr, va), est) in enumerate(zip(folds, models)):
         p_tr, p_va = predict(est, task, X[tr]), predict(est, task, X[va])
         oof[va] = p_va
         result.append(FoldMetrics(metrics_for(task, y[tr], p_tr), metrics_for(task, y[va], p_va)))
@@ -287,7 +303,7 @@ def greedy_selection(X, y, names: Sequence[str], groups, *, task: str, kind: str
                      progress: Callable[[int, int], None] | None = None) -> GreedyResult:
     """Greedy forward feature selection by grouped cross-validated AUROC / R^2."""
     _check(kind, task)
-    X, y = _xy(X, y, task)
+    X, y = training_arrays(X, y, task)
     names = list(names)
     if len(names) != X.shape[1]:
         raise ValueError(f"{len(names)} names for {X.shape[1]} columns")

@@ -184,10 +184,14 @@ class LmdDataset:
                    class_aware=first.class_aware, info=info, **cat)
 
     def summary(self) -> dict:
-        """Counts for manifests and reports."""
-        return {"groups": len(self.groups), "frames": int(self.n_frames), "boxes": len(self),
+        """Counts for manifests and reports (read from a feature table: its frame and
+        ground-truth counts, None where the table has none)."""
+        counts = {"frames": int(self.n_frames), "gt_boxes": int(len(self.gt_box))}
+        if "table" in self.info:  # the table holds no frame or ground-truth table
+            counts = {k: self.info["table"].get(k) for k in counts}
+        return {"groups": len(self.groups), "frames": counts["frames"], "boxes": len(self),
                 "tp": int(self.tp.sum()), "tp_rate": float(self.tp.mean()) if len(self) else
-                float("nan"), "gt_boxes": int(len(self.gt_box)),
+                float("nan"), "gt_boxes": counts["gt_boxes"],
                 "dropped_invalid": int(self.info.get("dropped_invalid", 0))}
 
 

@@ -18,10 +18,23 @@ estimators run single-threaded by default, so one command reproduces the models.
 pickles are zlib-compressed (joblib level 3: XGBoost pairs ~0.23 MB instead of ~0.97 MB).
 Bad data (no boxes, one class only, one sequence with cross validation) ends with a
 message and exit code 2, no traceback.
+
+Feature tables (``lidar_quality_training.feature_table``): ``--features PATH`` (files,
+directories, globs; repeatable) trains on Parquet tables from ``process_bags`` or
+``--export-features`` instead of bags / KITTI, one pair per mode found in them (or
+``--modes``), with the settings the tables record; held-out data then comes from
+``--test-features`` (or ``--test`` bags, read with the tables' settings), never from the
+default ``meta_test``. ``--test-features`` also works beside bags (same settings
+required). ``--export-features DIR`` writes the datasets the builders made as
+``DIR/train/lmd_<mode>.parquet`` (and ``DIR/test/...``), ``--export-only`` stops there.
+The manifests name the tables as the training data. ``--scheduler ADDRESS`` fits the
+XGBoost models, cross-validation folds included, with ``xgboost.dask`` on a Dask cluster
+(``lidar_quality_training.distributed_training``); the files are the same kind.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import sys
 import time
@@ -33,9 +46,12 @@ from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as M
 from lidar_quality_core.model_store import ModelStoreError
 
+from .. import feature_table
+from ..distributed_training import (LocalTraining, add_scheduler_option, check_scheduler,
+                                    training_backend)
 from ..report import ModelCard, bullets, code_block, fmt, markdown_table
 from .dataset import (TP_IOU, LmdDataset, Progress, add_source_args, load_from_args,
-                      settings_from_args)
+                      settings_for, settings_from_args)
 
 __all__ = ["MODES", "fit_pair", "classification_metrics", "regression_metrics",
            "cv_metrics", "train", "main"]
@@ -45,12 +61,14 @@ DEFAULT_OUT = Path("models/lmd")
 
 
 def fit_pair(ds: LmdDataset, kind: str = "xgboost", *, seed: int = 0, n_jobs: int = 1,
-             columns=None):
-    """(classifier, regressor) of ``kind`` fitted on ``ds`` (all features, or ``columns``)."""
+             columns=None, backend=None):
+    """(classifier, regressor) of ``kind`` fitted on ``ds`` (all features, or ``columns``)
+    by ``backend`` (``distributed_training``; default this machine)."""
+    backend = backend or LocalTraining()
     X = ds.X if columns is None else ds.columns(columns)
-    clf = meta_model.fit_estimator(kind, "classification", X, ds.tp.astype(float), seed=seed,
-                                   n_jobs=n_jobs)
-    reg = meta_model.fit_estimator(kind, "regression", X, ds.iou, seed=seed, n_jobs=n_jobs)
+    clf = backend.fit(kind, "classification", X, ds.tp.astype(float), seed=seed,
+                      n_jobs=n_jobs)
+    reg = backend.fit(kind, "regression", X, ds.iou, seed=seed, n_jobs=n_jobs)
     return clf, reg
 
 
@@ -67,14 +85,17 @@ def regression_metrics(iou, pred) -> dict:
 
 
 def cv_metrics(ds: LmdDataset, kind: str, *, n_folds: int, seed: int = 0, n_jobs: int = 1,
-               columns=None, progress=None) -> dict:
+               columns=None, progress=None, backend=None) -> dict:
     """Grouped (by sequence) cross validation: ``{"classification" | "regression":
-    {metric: [mean, std]}}`` over the validation folds, plus the out-of-fold predictions."""
+    {metric: [mean, std]}}`` over the validation folds, plus the out-of-fold predictions;
+    the fold models fitted by ``backend`` (default this machine)."""
+    backend = backend or LocalTraining()
     X = ds.X if columns is None else ds.columns(columns)
     out = {}
     for task, y in (("classification", ds.tp.astype(float)), ("regression", ds.iou)):
         res = meta_model.cross_validate(X, y, ds.group, task=task, kind=kind, n_folds=n_folds,
-                                        seed=seed, n_jobs=n_jobs, progress=progress)
+                                        seed=seed, n_jobs=n_jobs, progress=progress,
+                                        fold_fitter=backend.fit_folds)
         out[task] = {k: [float(v[0]), float(v[1])] for k, v in res.mean_std()["val"].items()}
         out[task + "_oof"] = res.oof
     return out
@@ -95,8 +116,8 @@ def _sources(ds: LmdDataset) -> list[str]:
 
 
 def _data(ds: LmdDataset) -> dict:
-    """Where ``ds`` comes from: ``{"sources": [bag or KITTI source dicts], "simulated":
-    bool}`` (the model card's data section)."""
+    """Where ``ds`` comes from: ``{"sources": [bag, KITTI or feature table source dicts],
+    "simulated": bool}`` (the model card's data section)."""
     src = [dict(s) for s in ds.info.get("sources", [])]
     bags = [s["path"] for s in src if s.get("kind") == "perception_bag"]
     return {"sources": src,
@@ -112,8 +133,10 @@ def _check_trainable(ds: LmdDataset, mode: str) -> None:
 
 def train(train_sets: dict, test_sets: dict | None, out: Path, *, kind: str = "xgboost",
           seed: int = 0, n_jobs: int = 1, cv_folds: int = 4, command: str = "",
-          progress: bool = True) -> dict:
-    """Fit, evaluate and save one pair per mode of ``train_sets``; returns the metrics."""
+          progress: bool = True, backend=None) -> dict:
+    """Fit, evaluate and save one pair per mode of ``train_sets``; returns the metrics.
+    ``backend`` fits the models (``distributed_training``; default this machine)."""
+    backend = backend or LocalTraining()
     out = Path(out)
     results = {}
     n_folds = {}
@@ -129,12 +152,12 @@ def train(train_sets: dict, test_sets: dict | None, out: Path, *, kind: str = "x
         if folds:
             bar = Progress(f"  grouped CV ({kind})", 2 * folds, progress)
             cv = cv_metrics(ds, kind, n_folds=folds, seed=seed, n_jobs=n_jobs,
-                            progress=lambda *_: bar.update())
+                            progress=lambda *_: bar.update(), backend=backend)
             bar.close()
             cmet["cv"], rmet["cv"] = cv["classification"], cv["regression"]
         elif progress:
             sys.stderr.write("  no cross validation (--cv-folds 0)\n")
-        clf, reg = fit_pair(ds, kind, seed=seed, n_jobs=n_jobs)
+        clf, reg = fit_pair(ds, kind, seed=seed, n_jobs=n_jobs, backend=backend)
         held = None
         if test_sets is not None and mode in test_sets and len(test_sets[mode]):
             te = test_sets[mode]
@@ -153,6 +176,8 @@ def train(train_sets: dict, test_sets: dict | None, out: Path, *, kind: str = "x
                     "data": _data(ds)}
         if not folds:
             training["cross_validation"] = "skipped: --cv-folds 0"
+        if backend.record():
+            training["fitted_on"] = backend.record()
         cpath, rpath = meta_model.save_pair(out, f"lmd_{mode}", clf, reg, ds.feature_names,
                                             training_data=_round(training),
                                             classifier_metrics=_round(cmet),
@@ -180,6 +205,9 @@ def _source_items(data: dict | None, label: str) -> list[str]:
     bags = [s["path"] for s in data["sources"] if s.get("kind") == "perception_bag"]
     if bags:
         out.append(f"{label} perception bags: {', '.join(f'`{b}`' for b in bags)}.")
+    tables = [s["path"] for s in data["sources"] if s.get("kind") == "feature_table"]
+    if tables:
+        out.append(f"{label} feature tables (Parquet): {', '.join(f'`{t}`' for t in tables)}.")
     for s in data["sources"]:
         if s.get("kind") == "kitti":
             props = s.get("proposals")
@@ -195,11 +223,26 @@ def _origin_item(tr: dict) -> str:
         return ("Detections, proposals and ground truth: simulated lidar sequences "
                 "(`lidar_sim`) run through the reference perception (`reference_perception`), "
                 "stored as perception bags (`make meta-data`).")
+    if any(s.get("kind") == "feature_table" for s in data.get("sources", [])):
+        return ("Features and targets: the feature tables named above (`process_bags` or "
+                "`lmd-train --export-features`), computed by the node's own code from "
+                "their bags or KITTI data.")
     if any(s.get("kind") == "kitti" for s in data.get("sources", [])):
         return ("Ground truth: the KITTI directory's `label_2` (camera boxes converted with "
                 "each frame's `calib`); detections and proposals: the result files named above.")
     return ("Detections, proposals and ground truth: the perception bags named above "
             "(`/perception/detections`, `/perception/proposals`, `/lidar/gt_objects`).")
+
+
+def _all_modes(results: dict, data_of) -> dict | None:
+    """The ``_data`` dicts of every mode's training record (``data_of``) in one: bags
+    are the same for all modes, feature tables are one per mode."""
+    found = [d for r in results.values() if (d := data_of(r["training"]))]
+    if not found:
+        return None
+    sources = {json.dumps(s, sort_keys=True): s for d in found for s in d["sources"]}
+    return {"sources": list(sources.values()),
+            "simulated": all(d.get("simulated") for d in found)}
 
 
 def model_card(results: dict, command: str) -> str:
@@ -218,16 +261,19 @@ def model_card(results: dict, command: str) -> str:
         "(`lmd-train` is `python -m lidar_quality_training.lmd.train`; in the repository: "
         "`make lmd-models`.)",
         f"Estimator: `{tr['kind']}` (lidar_quality_core.meta_model), seed {tr['seed']}, "
-        "single-threaded.")
+        + (f"fitted with xgboost.dask on {tr['fitted_on']['workers']} Dask workers "
+           f"(`--scheduler {tr['fitted_on']['scheduler']}`)." if tr.get("fitted_on")
+           else "single-threaded."))
     data = [f"Training: {tr['frames']} frames, {tr['boxes']} boxes ({tr['tp']} TP, rate "
             f"{fmt(tr['tp_rate'], 3)}) from {tr['groups']} sequences: "
             f"{', '.join(map(str, tr['sources']))}.",
-            *_source_items(tr.get("data"), "Training")]
+            *_source_items(_all_modes(results, lambda t: t.get("data")), "Training")]
     if held:
         data += [f"Held out: {held['frames']} frames, {held['boxes']} boxes ({held['tp']} "
                  f"TP, rate {fmt(held['tp_rate'], 3)}) from {held['groups']} sequences: "
                  f"{', '.join(map(str, held['sources']))}.",
-                 *_source_items(held.get("data"), "Held-out")]
+                 *_source_items(_all_modes(results, lambda t: (t.get("held_out") or {})
+                                           .get("data")), "Held-out")]
     data += [_origin_item(tr),
              f"Target: {tr['target']} (class-agnostic, as the authors' code); TP iff "
              f"{tr['tp_rule']}."]
@@ -281,27 +327,120 @@ def model_card(results: dict, command: str) -> str:
     return card.render()
 
 
+def add_table_args(ap) -> None:
+    """``--features``, ``--test-features``, ``--export-features``, ``--export-only``."""
+    g = ap.add_argument_group("feature tables (Parquet; instead of bags / KITTI)")
+    g.add_argument("--features", action="append", default=None, metavar="PATH",
+                   help="training feature tables: a file, a directory tree of *.parquet "
+                        "(Hive partitions too) or a glob; repeatable. Replaces --train / "
+                        "--kitti-root; the tables' settings are used")
+    g.add_argument("--test-features", action="append", default=None, metavar="PATH",
+                   help="held-out feature tables (same forms; repeatable)")
+    g.add_argument("--export-features", type=Path, default=None, metavar="DIR",
+                   help="write the datasets as feature tables: DIR/train/lmd_<mode>.parquet, "
+                        "DIR/test/lmd_<mode>.parquet")
+    g.add_argument("--export-only", action="store_true",
+                   help="with --export-features: write the tables and stop (no training)")
+
+
+def _table_settings(ds: LmdDataset):
+    """The ``LmdSettings`` a table's dataset was made with (to read bags alike)."""
+    rec = dict(ds.info.get("settings") or {})
+    rec.pop("proposal_mode", None)
+    try:
+        return settings_for(ds.mode, **rec)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"the tables' settings of mode {ds.mode} are not usable: {exc}") \
+            from None
+
+
+def _same_settings(train_sets: dict, test_sets: dict) -> dict:
+    """``test_sets`` of the training modes; a mode whose held-out data was made with other
+    settings than its training data is refused, naming the settings."""
+    out = {}
+    for mode, te in test_sets.items():
+        if mode not in train_sets:
+            continue
+        a, b = train_sets[mode].info.get("settings") or {}, te.info.get("settings") or {}
+        diff = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+        if diff:
+            pairs = ", ".join(f"{k} {b.get(k)!r} vs {a.get(k)!r}" for k in diff)
+            raise ValueError(f"mode {mode}: the held-out data was made with other settings "
+                             f"than the training data ({pairs})")
+        out[mode] = te
+    return out
+
+
+def load_data(args) -> tuple[dict, dict | None]:
+    """``({mode: training dataset}, {mode: held-out dataset} or None)`` of the arguments:
+    bags, KITTI or feature tables."""
+    if args.features:
+        if args.train is not None or args.kitti_root is not None:
+            raise ValueError("--features replaces --train / --kitti-root: give one source "
+                             "of training data")
+        train_sets = feature_table.read_lmd(args.features, modes=args.modes,
+                                            class_aware=args.class_aware)
+        test_sets = None
+        if args.test:  # bags, read with the settings the tables were made with
+            test_sets = load_from_args(args, [_table_settings(d) for d in train_sets.values()],
+                                       "test")
+    else:
+        train_sets = load_from_args(args, settings_from_args(args, args.modes or MODES),
+                                    "train")
+        test_sets = None if args.test_features else load_from_args(
+            args, settings_from_args(args, args.modes or MODES), "test")
+    if args.test_features:
+        if args.test:
+            raise ValueError("--test-features replaces --test: give one source of held-out "
+                             "data")
+        test_sets = feature_table.read_lmd(args.test_features, class_aware=args.class_aware)
+    return train_sets, (None if test_sets is None else _same_settings(train_sets, test_sets))
+
+
+def _print_table_counts(label: str, sets: dict | None) -> None:
+    for mode, ds in (sets or {}).items():
+        left = ds.info.get("rows_without_targets", 0), ds.info.get("rows_invalid", 0)
+        if "rows_without_targets" in ds.info and any(left):
+            sys.stderr.write(f"{label} tables, mode {mode}: {left[0]} rows without targets "
+                             f"and {left[1]} invalid rows left out\n")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="lmd-train", description=__doc__.split("\n\n")[0])
     add_source_args(ap)
+    add_table_args(ap)
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="model directory")
-    ap.add_argument("--modes", nargs="+", choices=MODES, default=list(MODES))
+    ap.add_argument("--modes", nargs="+", choices=MODES, default=None,
+                    help="proposal modes to train (default: all three; with --features: "
+                         "every mode in the tables)")
     ap.add_argument("--kind", choices=meta_model.KINDS, default="xgboost")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jobs", type=int, default=1, help="estimator threads")
     ap.add_argument("--cv-folds", type=meta_model.cv_folds_arg, default=4,
                     help="grouped CV folds (by sequence; needs >= 2 sequences); 0: no CV")
+    add_scheduler_option(ap)
     ap.add_argument("--no-model-card", action="store_true")
     args = ap.parse_args(argv)
+    if args.export_only and args.export_features is None:
+        ap.error("--export-only needs --export-features DIR")
     command = "lmd-train " + " ".join(shlex.quote(a) for a in
                                       (sys.argv[1:] if argv is None else list(argv)))
     try:
-        settings = settings_from_args(args, args.modes)
-        train_sets = load_from_args(args, settings, "train")
-        test_sets = load_from_args(args, settings, "test")
-        results = train(train_sets, test_sets, args.out, kind=args.kind, seed=args.seed,
-                        n_jobs=args.jobs, cv_folds=args.cv_folds, command=command,
-                        progress=not args.quiet)
+        check_scheduler(args.scheduler, args.kind)  # before reading any data
+        train_sets, test_sets = load_data(args)
+        if not args.quiet:
+            _print_table_counts("training", train_sets)
+            _print_table_counts("held-out", test_sets)
+        if args.export_features is not None:
+            for part, sets in (("train", train_sets), ("test", test_sets)):
+                for p in feature_table.export_tables(sets or {}, args.export_features / part):
+                    print(f"wrote {p}")
+            if args.export_only:
+                return 0
+        with training_backend(args.scheduler, args.kind) as backend:
+            results = train(train_sets, test_sets, args.out, kind=args.kind, seed=args.seed,
+                            n_jobs=args.jobs, cv_folds=args.cv_folds, command=command,
+                            progress=not args.quiet, backend=backend)
     except (ValueError, OSError, ModelStoreError) as exc:  # bad data: say why, no traceback
         print(f"lmd-train: {exc}", file=sys.stderr)
         return 2

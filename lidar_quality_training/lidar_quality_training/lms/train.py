@@ -23,6 +23,14 @@ Feature sets (also used by ``lms-eval`` for the paper's baselines), by metric na
   ``^(mean|var)_(x|y|z|i|r)(_in|_bd|_rel|_rel_in)?$`` (5 x 10 = 50 metrics; the sizes,
   N_c and P_c stay, as in the paper's "LMS w/o features");
 * ``entropy``: ``mean_E`` alone (the paper's "Entropy" baseline).
+
+Feature tables (``lidar_quality_training.feature_table``): ``--features PATH`` (files,
+directories, globs; repeatable) trains on Parquet tables instead of ``--data``, with the
+settings they record (the image and ``--min-points`` options do not apply; the groups are
+made with ``--block-frames``); ``--export-features DIR`` writes the dataset as
+``DIR/lms_<ring source>.parquet`` (``--export-only``: and stops). ``--scheduler ADDRESS``
+fits the XGBoost models, folds included, with ``xgboost.dask`` on a Dask cluster
+(``lidar_quality_training.distributed_training``); the files are the same kind.
 """
 from __future__ import annotations
 
@@ -42,6 +50,9 @@ from lidar_quality_core.model_store import ModelStoreError
 from lidar_quality_core.progress import Progress
 from lidar_quality_ros.perception_bag import add_topic_option
 
+from .. import feature_table
+from ..distributed_training import (LocalTraining, add_scheduler_option, check_scheduler,
+                                    training_backend)
 from ..report import ModelCard, bullets, markdown_table
 from .dataset import DEFAULT_BLOCK_FRAMES, RING_FROM, SegmentDataset, build_dataset
 
@@ -98,12 +109,13 @@ def _mean_std(rows: list[dict[str, float]]) -> dict[str, list[float]]:
 
 def cross_validate_pair(ds: SegmentDataset, names: Sequence[str] | None = None, *,
                         kind: str = "xgboost", n_folds: int = 10, seed: int = 0,
-                        n_jobs: int = 1, progress=None) -> dict:
+                        n_jobs: int = 1, progress=None, backend=None) -> dict:
     """Grouped ``n_folds`` cross validation (folds of whole sub-sequences,
     :func:`meta_model.group_folds`) of the classifier and the regressor on the columns
-    ``names``. Returns ``{"classification" | "regression": {"train" | "val": {metric:
-    [mean, std]}, "folds": [...]}, "oof": {task: out-of-fold predictions},
-    "fold": fold of each row}``."""
+    ``names``, the fold models fitted by ``backend`` (default this machine). Returns
+    ``{"classification" | "regression": {"train" | "val": {metric: [mean, std]},
+    "folds": [...]}, "oof": {task: out-of-fold predictions}, "fold": fold of each row}``."""
+    backend = backend or LocalTraining()
     X = ds.X if names is None else ds.columns(names)
     y = {"classification": ds.tp.astype(float), "regression": ds.iou_adj}
     folds = meta_model.group_folds(ds.group, n_folds, seed=seed)
@@ -115,9 +127,8 @@ def cross_validate_pair(ds: SegmentDataset, names: Sequence[str] | None = None, 
     for task in ("classification", "regression"):
         oof = np.full(len(ds), np.nan)
         per = []
-        for tr, va in folds:
-            est = meta_model.fit_estimator(kind, task, X[tr], y[task][tr], seed=seed,
-                                           n_jobs=n_jobs)
+        models = backend.fit_folds(kind, task, X, y[task], folds, seed=seed, n_jobs=n_jobs)
+        for (tr, va), est in zip(folds, models):
             p_tr = meta_model.predict(est, task, X[tr])
             oof[va] = meta_model.predict(est, task, X[va])
             per.append({"train": task_metrics(task, y[task][tr], p_tr),
@@ -132,12 +143,14 @@ def cross_validate_pair(ds: SegmentDataset, names: Sequence[str] | None = None, 
 
 
 def fit_pair(ds: SegmentDataset, names: Sequence[str] | None = None, *,
-             kind: str = "xgboost", seed: int = 0, n_jobs: int = 1):
-    """(classifier, regressor) fitted on all rows, columns ``names`` (default: all)."""
+             kind: str = "xgboost", seed: int = 0, n_jobs: int = 1, backend=None):
+    """(classifier, regressor) fitted on all rows, columns ``names`` (default: all), by
+    ``backend`` (default this machine)."""
+    backend = backend or LocalTraining()
     X = ds.X if names is None else ds.columns(names)
-    clf = meta_model.fit_estimator(kind, "classification", X, ds.tp.astype(float),
-                                   seed=seed, n_jobs=n_jobs)
-    reg = meta_model.fit_estimator(kind, "regression", X, ds.iou_adj, seed=seed, n_jobs=n_jobs)
+    clf = backend.fit(kind, "classification", X, ds.tp.astype(float), seed=seed,
+                      n_jobs=n_jobs)
+    reg = backend.fit(kind, "regression", X, ds.iou_adj, seed=seed, n_jobs=n_jobs)
     return clf, reg
 
 
@@ -156,11 +169,17 @@ def data_summary(ds: SegmentDataset) -> dict:
             "data": _data(ds.info.get("sources") or [])}
 
 
+def _source_kind(path) -> str:
+    if str(path).endswith(".parquet"):
+        return "feature_table"
+    return "perception_bag" if (Path(path) / "metadata.yaml").is_file() else "semantickitti"
+
+
 def _data(paths) -> dict:
-    """``{"sources": [{"kind": "perception_bag" | "semantickitti", "path"}], "simulated"}``
-    of the dataset's source paths (the model card's data section)."""
-    src = [{"kind": "perception_bag" if (Path(p) / "metadata.yaml").is_file()
-            else "semantickitti", "path": str(p)} for p in paths]
+    """``{"sources": [{"kind": "perception_bag" | "semantickitti" | "feature_table",
+    "path"}], "simulated"}`` of the dataset's source paths (the model card's data
+    section)."""
+    src = [{"kind": _source_kind(p), "path": str(p)} for p in paths]
     return {"sources": src, "simulated": all(s["kind"] == "perception_bag" for s in src)
             and meta_model.simulated_sources([s["path"] for s in src])}
 
@@ -170,7 +189,8 @@ def _source_items(data: dict | None) -> list[str]:
         return []
     out = []
     for kind, label in (("perception_bag", "Perception bags"),
-                        ("semantickitti", "SemanticKITTI-style sequences")):
+                        ("semantickitti", "SemanticKITTI-style sequences"),
+                        ("feature_table", "Feature tables (Parquet)")):
         paths = [s["path"] for s in data["sources"] if s["kind"] == kind]
         if paths:
             out.append(f"{label}: {', '.join(f'`{p}`' for p in paths)}.")
@@ -178,7 +198,7 @@ def _source_items(data: dict | None) -> list[str]:
 
 
 def _model_card(path: Path, data: dict, cv: dict | None, kind: str, command: str,
-                sizes: dict[str, int], n_features: int) -> None:
+                sizes: dict[str, int], n_features: int, fitted_on: dict | None = None) -> None:
     card = ModelCard(
         "LidarMetaSeg meta models (`lms_classifier.joblib`, `lms_regressor.joblib`)",
         ["Used by `lms_node` (via `lms_ros.pipeline.default_model_paths`): per predicted "
@@ -190,7 +210,8 @@ def _model_card(path: Path, data: dict, cv: dict | None, kind: str, command: str
     made = card.section("How they were made", bullets([
         f"Command: `{command}`",
         f"Estimator: `{kind}` (`lidar_quality_core.meta_model.make_estimator`, seed 0, "
-        "one thread; deterministic).",
+        + (f"fitted with xgboost.dask on {fitted_on['workers']} Dask workers (`--scheduler "
+           f"{fitted_on['scheduler']}`)." if fitted_on else "one thread; deterministic)."),
         f"Data: {data['n_sequences']} sequences, {data['n_frames']} frames, "
         f"{data['n_segments']} segments with SP >= "
         f"{(data.get('settings') or {}).get('min_segment_points', '?')} points "
@@ -231,10 +252,13 @@ def _model_card(path: Path, data: dict, cv: dict | None, kind: str, command: str
 
 
 def train(ds: SegmentDataset, out, *, kind: str = "xgboost", n_folds: int = 10,
-          seed: int = 0, n_jobs: int = 1, command: str = "", quiet: bool = False) -> dict:
+          seed: int = 0, n_jobs: int = 1, command: str = "", quiet: bool = False,
+          backend=None) -> dict:
     """Cross-validate (``n_folds`` >= 2; 0: none), fit on all rows and save the pair +
-    model card into ``out``. Returns a summary (data, CV means and stds, file sizes).
+    model card into ``out``; ``backend`` fits the models (``distributed_training``,
+    default this machine). Returns a summary (data, CV means and stds, file sizes).
     Raises ``ValueError`` for data it cannot train on (no segment, one CV group)."""
+    backend = backend or LocalTraining()
     out = Path(out)
     if not len(ds):
         raise ValueError(f"no segment in the training data ({ds.info.get('n_frames', 0)} "
@@ -251,9 +275,9 @@ def train(ds: SegmentDataset, out, *, kind: str = "xgboost", n_folds: int = 10,
     if n_folds:
         bar = Progress("cross validation", 2 * n_folds, not quiet)
         cv = cross_validate_pair(ds, kind=kind, n_folds=n_folds, seed=seed, n_jobs=n_jobs,
-                                 progress=bar)
+                                 progress=bar, backend=backend)
     t0 = time.monotonic()
-    clf, reg = fit_pair(ds, kind=kind, seed=seed, n_jobs=n_jobs)
+    clf, reg = fit_pair(ds, kind=kind, seed=seed, n_jobs=n_jobs, backend=backend)
     fit_s = time.monotonic() - t0
 
     def task_cv(task):
@@ -266,12 +290,15 @@ def train(ds: SegmentDataset, out, *, kind: str = "xgboost", n_folds: int = 10,
                      "cv_folds": n_folds}
     if not n_folds:
         training_data["cross_validation"] = "skipped: --cv-folds 0"
+    if backend.record():
+        training_data["fitted_on"] = backend.record()
     cpath, rpath = meta_model.save_pair(out, PREFIX, clf, reg, ds.names,
                                         training_data=training_data,
                                         classifier_metrics=task_cv("classification"),
                                         regressor_metrics=task_cv("regression"))
     sizes = {p.name: p.stat().st_size for p in (cpath, rpath)}
-    _model_card(out / "MODEL_CARD.md", data, cv, kind, command, sizes, len(ds.names))
+    _model_card(out / "MODEL_CARD.md", data, cv, kind, command, sizes, len(ds.names),
+                backend.record())
     summary = {"data": data, "kind": kind, "fit_seconds": round(fit_s, 1), "files": sizes,
                "cv": None if cv is None else {t: {"train": cv[t]["train"], "val": cv[t]["val"]}
                                                for t in ("classification", "regression")}}
@@ -337,27 +364,60 @@ def dataset_from_args(a, paths) -> SegmentDataset:
                          topics=dict(a.topic))
 
 
+def dataset_from_tables(a) -> SegmentDataset:
+    """The dataset of ``--features`` (``a.features``), groups of ``--block-frames``."""
+    if a.data is not None:
+        raise ValueError("--features replaces --data: give one source of training data")
+    ds = feature_table.read_lms(a.features, block_frames=a.block_frames)
+    left = ds.info["rows_without_targets"], ds.info["rows_invalid"]
+    if any(left) and not a.quiet:
+        sys.stderr.write(f"feature tables: {left[0]} rows without targets and {left[1]} "
+                         "invalid rows left out\n")
+    return ds
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="lms-train", description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", type=Path, nargs="+", default=[Path("data/perception/meta_train")],
-                    help="perception bag(s), directories of bags or SemanticKITTI-style roots")
+    ap.add_argument("--data", type=Path, nargs="+", default=None,
+                    help="perception bag(s), directories of bags or SemanticKITTI-style roots "
+                         "(default: data/perception/meta_train)")
+    ap.add_argument("--features", action="append", default=None, metavar="PATH",
+                    help="feature tables instead of --data: a Parquet file, a directory tree "
+                         "of *.parquet (Hive partitions too) or a glob; repeatable")
+    ap.add_argument("--export-features", type=Path, default=None, metavar="DIR",
+                    help="write the dataset as DIR/lms_<ring source>.parquet")
+    ap.add_argument("--export-only", action="store_true",
+                    help="with --export-features: write the table and stop (no training)")
     ap.add_argument("--out", type=Path, default=Path("models/lms"))
     ap.add_argument("--kind", choices=meta_model.KINDS, default="xgboost")
     ap.add_argument("--cv-folds", "--folds", dest="folds", type=meta_model.cv_folds_arg,
                     default=10, help="grouped CV folds over sub-sequences (0: no CV)")
     ap.add_argument("--seed", type=int, default=0)
+    add_scheduler_option(ap)
     add_data_arguments(ap)
     a = ap.parse_args(argv)
+    if a.export_only and a.export_features is None:
+        ap.error("--export-only needs --export-features DIR")
     command = "lms-train " + " ".join(shlex.quote(x) for x in (sys.argv[1:] if argv is None
                                                                  else argv))
     try:
-        ds = dataset_from_args(a, a.data)
+        check_scheduler(a.scheduler, a.kind)  # before reading any data
+        if a.features:
+            ds = dataset_from_tables(a)
+        else:
+            ds = dataset_from_args(a, a.data or [Path("data/perception/meta_train")])
+        if a.export_features is not None:
+            for p in feature_table.export_tables(ds, a.export_features):
+                print(f"wrote {p}")
+            if a.export_only:
+                return 0
         if not a.quiet:
             sys.stderr.write(f"{len(ds)} segments from {ds.info['n_frames']} frames of "
                              f"{len(ds.sequences)} sequences, {len(np.unique(ds.group))} "
                              "groups\n")
-        summary = train(ds, a.out, kind=a.kind, n_folds=a.folds, seed=a.seed,
-                        command=command, quiet=a.quiet)
+        with training_backend(a.scheduler, a.kind) as backend:
+            summary = train(ds, a.out, kind=a.kind, n_folds=a.folds, seed=a.seed,
+                            command=command, quiet=a.quiet, backend=backend)
     except (ValueError, OSError, ModelStoreError) as exc:  # bad data: say why, no traceback
         print(f"lms-train: {exc}", file=sys.stderr)
         return 2

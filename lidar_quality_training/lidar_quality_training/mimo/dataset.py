@@ -218,12 +218,17 @@ class MimoDataset:
         return cls(first.class_names, first.feature_names, info=info, **d)
 
     def summary(self) -> dict:
-        return {"groups": len(self.groups), "frames": int(self.n_frames),
-                "merged": len(self), "merged_tp": int(self.tp.sum()),
-                "single": int(len(self.s_score)),
-                "single_tp": int((self.s_iou_class >= TP_IOU).sum()),
-                "gt_boxes": int(len(self.gt_box)),
-                "gt_ignored": int(self.gt_ignore().sum())}
+        """Counts for manifests and reports (read from a feature table: its frame,
+        single-head and ground-truth counts, None where the table has none)."""
+        counts = {"frames": int(self.n_frames), "single": int(len(self.s_score)),
+                  "single_tp": int((self.s_iou_class >= TP_IOU).sum()),
+                  "gt_boxes": int(len(self.gt_box)), "gt_ignored": int(self.gt_ignore().sum())}
+        if "table" in self.info:  # the table holds merged detections only
+            counts = {k: self.info["table"].get(k) for k in counts}
+        return {"groups": len(self.groups), "frames": counts["frames"], "merged": len(self),
+                "merged_tp": int(self.tp.sum()), "single": counts["single"],
+                "single_tp": counts["single_tp"], "gt_boxes": counts["gt_boxes"],
+                "gt_ignored": counts["gt_ignored"]}
 
 
 # ------------------------------------------------------------------ building

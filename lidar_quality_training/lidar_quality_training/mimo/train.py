@@ -15,6 +15,14 @@ two sequences (bags), so one bag trains with ``--cv-folds 0`` and otherwise ends
 reason (exit 2, no traceback), as for other bad data. Each pair's manifest records the
 merge settings with its own ``use_points``; the card names the bags and calls them
 simulated only when they are the project's (``meta_model.simulated_sources``).
+
+Feature tables (``lidar_quality_training.feature_table``): ``--features PATH`` (files,
+directories, globs; repeatable) trains on Parquet tables instead of ``--data``, with the
+settings they record: tables of mode ``points`` train both pairs, ``no_points`` tables
+(``process_bags`` with ``use_points: false``) the ``mimo`` pair only. ``--export-features
+DIR`` writes the dataset as ``DIR/mimo_points.parquet`` (``--export-only``: and stops).
+``--scheduler ADDRESS`` fits the XGBoost models, folds included, with ``xgboost.dask`` on a
+Dask cluster (``lidar_quality_training.distributed_training``); the files are the same kind.
 """
 from __future__ import annotations
 
@@ -32,7 +40,11 @@ from lidar_quality_core import metrics as qm
 from lidar_quality_core.model_store import ModelStoreError
 from lidar_quality_core.progress import Progress
 from lidar_quality_ros.perception_bag import add_topic_option
+from mimo_ros.pipeline import MimoSettings
 
+from .. import feature_table
+from ..distributed_training import (LocalTraining, add_scheduler_option, check_scheduler,
+                                    training_backend)
 from ..report import ModelCard, Section, code_block, markdown_table
 from .dataset import TP_IOU, MimoDataset, load_bags
 
@@ -50,9 +62,11 @@ def _cv_summary(cv: meta_model.CVResult) -> dict:
 
 
 def train_pair(ds: MimoDataset, use_points: bool, out_dir, *, kind: str = "xgboost",
-               folds: int = 6, seed: int = 0, progress=None) -> dict:
-    """Cross-validate and fit one classifier + regressor pair; save it under ``out_dir``.
+               folds: int = 6, seed: int = 0, progress=None, backend=None) -> dict:
+    """Cross-validate and fit one classifier + regressor pair by ``backend``
+    (``distributed_training``, default this machine); save it under ``out_dir``.
     Returns the metrics and paths."""
+    backend = backend or LocalTraining()
     X, names = ds.features(use_points)
     y_cls, y_iou = ds.tp.astype(float), ds.m_iou_class
     groups = ds.group
@@ -61,12 +75,14 @@ def train_pair(ds: MimoDataset, use_points: bool, out_dir, *, kind: str = "xgboo
     folds = meta_model.cv_fold_count(groups, folds, what="sequences (bags)")
     if folds:
         cv_c = meta_model.cross_validate(X, y_cls, groups, task="classification", kind=kind,
-                                         n_folds=folds, seed=seed, progress=progress)
+                                         n_folds=folds, seed=seed, progress=progress,
+                                         fold_fitter=backend.fit_folds)
         cv_r = meta_model.cross_validate(X, y_iou, groups, task="regression", kind=kind,
-                                         n_folds=folds, seed=seed, progress=progress)
+                                         n_folds=folds, seed=seed, progress=progress,
+                                         fold_fitter=backend.fit_folds)
         res["classifier_cv"], res["regressor_cv"] = _cv_summary(cv_c), _cv_summary(cv_r)
-    clf = meta_model.fit_estimator(kind, "classification", X, y_cls, seed=seed)
-    reg = meta_model.fit_estimator(kind, "regression", X, y_iou, seed=seed)
+    clf = backend.fit(kind, "classification", X, y_cls, seed=seed)
+    reg = backend.fit(kind, "regression", X, y_iou, seed=seed)
     training = {"sources": [s["path"] for s in ds.info.get("sources", [])],
                 "groups": ds.groups, "frames": int(ds.n_frames), "rows": int(len(X)),
                 "classifier_target": f"BEV IoU with the best GT box of the detection's class "
@@ -76,6 +92,8 @@ def train_pair(ds: MimoDataset, use_points: bool, out_dir, *, kind: str = "xgboo
                 "data": _data(ds)}
     if not folds:
         training["cross_validation"] = "skipped: --cv-folds 0"
+    if backend.record():
+        training["fitted_on"] = backend.record()
     cpath, rpath = meta_model.save_pair(out_dir, res["prefix"], clf, reg, names,
                                         training_data=training,
                                         classifier_metrics=res.get("classifier_cv"),
@@ -85,10 +103,13 @@ def train_pair(ds: MimoDataset, use_points: bool, out_dir, *, kind: str = "xgboo
 
 
 def _data(ds: MimoDataset) -> dict:
-    """``{"sources": [{"kind": "perception_bag", "path"}], "simulated"}``."""
-    paths = [s["path"] for s in ds.info.get("sources", [])]
-    return {"sources": [{"kind": "perception_bag", "path": p} for p in paths],
-            "simulated": meta_model.simulated_sources(paths)}
+    """``{"sources": [{"kind": "perception_bag" | "feature_table", "path"}],
+    "simulated"}``."""
+    src = [{"kind": s.get("kind", "perception_bag"), "path": s["path"]}
+           for s in ds.info.get("sources", [])]
+    bags = [s["path"] for s in src if s["kind"] == "perception_bag"]
+    return {"sources": src,
+            "simulated": len(bags) == len(src) and meta_model.simulated_sources(bags)}
 
 
 def _baseline(ds: MimoDataset) -> dict:
@@ -100,11 +121,21 @@ def _baseline(ds: MimoDataset) -> dict:
 
 def train(data: Sequence, out_dir, *, cache_dir=None, kind: str = "xgboost", folds: int = 6,
           seed: int = 0, quiet: bool = False, command: str = "",
-          topics: dict | None = None) -> dict:
+          topics: dict | None = None, backend=None) -> dict:
     """Load the bags (``topics``: their topic names by key), train both pairs, write the
     model card. Returns the summary."""
     t0 = time.monotonic()
     ds = load_bags(data, cache_dir=cache_dir, progress=not quiet, topics=topics)
+    return train_dataset(ds, out_dir, kind=kind, folds=folds, seed=seed, quiet=quiet,
+                         command=command, backend=backend, t0=t0)
+
+
+def train_dataset(ds: MimoDataset, out_dir, *, kind: str = "xgboost", folds: int = 6,
+                  seed: int = 0, quiet: bool = False, command: str = "", backend=None,
+                  t0: float | None = None) -> dict:
+    """Train the pairs ``ds`` has the features of (both, or ``mimo`` only without the
+    point features), write the model card. Returns the summary."""
+    t0 = time.monotonic() if t0 is None else t0
     if len(ds) == 0:
         raise ValueError(f"no merged detections in the training data ({ds.n_frames} frames)")
     meta_model.cv_fold_count(ds.group, folds, what="sequences (bags)")  # before any fit
@@ -114,10 +145,11 @@ def train(data: Sequence, out_dir, *, cache_dir=None, kind: str = "xgboost", fol
     summary = {"data": ds.summary(), "baseline_merged_score": _baseline(ds), "pairs": [],
                "heads": (ds.info.get("settings") or {}).get("num_heads"),
                "sources": _data(ds)}
-    for use_points in (False, True):
+    with_points = len(ds.feature_names) > len(MimoSettings(use_points=False).feature_names())
+    for use_points in (False, True)[:2 if with_points else 1]:
         bar = Progress(f"{PREFIXES[use_points]}: cross validation folds", None, not quiet)
         summary["pairs"].append(train_pair(ds, use_points, out, kind=kind, folds=folds,
-                                           seed=seed, progress=bar))
+                                           seed=seed, progress=bar, backend=backend))
     summary["seconds"] = time.monotonic() - t0
     (out / "MODEL_CARD.md").write_text(model_card(summary, command))
     return summary
@@ -149,6 +181,10 @@ def model_card(summary: dict, command: str = "") -> str:
         data_line = (f"Simulated perception bags (`lidar_sim` scenes, reference perception with "
                      f"{summary.get('heads')} heads; `make meta-data`): {bags}.")
         trained_on = "simulated scans and the reference multi-head detector"
+    elif any(s["kind"] == "feature_table" for s in src["sources"]):
+        data_line = (f"Feature tables (Parquet) of perception bags with {summary.get('heads')} "
+                     f"detector heads: {bags}.")
+        trained_on = "the bags of the feature tables named above (their heads and scenes)"
     else:
         data_line = f"Perception bags with {summary.get('heads')} detector heads: {bags}."
         trained_on = "the perception bags named above (their detector heads and scenes)"
@@ -203,9 +239,10 @@ def heldout_section(*blocks: str) -> Section:
     return Section("Held-out evaluation", [f"{CARD_BEGIN}\n{body}\n{CARD_END}"])
 
 
-def add_data_arguments(p: argparse.ArgumentParser, default_data: str) -> None:
-    p.add_argument("--data", nargs="+", default=[default_data],
-                   help="perception bags or directories of bags (one sequence per bag)")
+def add_data_arguments(p: argparse.ArgumentParser, default_data: str | None) -> None:
+    p.add_argument("--data", nargs="+", default=None if default_data is None else [default_data],
+                   help="perception bags or directories of bags (one sequence per bag)"
+                        + (f" (default: {default_data})" if default_data else ""))
     p.add_argument("--cache", default="data/cache/mimo",
                    help="dataset cache directory ('' = no cache)")
     add_topic_option(p)
@@ -214,18 +251,48 @@ def add_data_arguments(p: argparse.ArgumentParser, default_data: str) -> None:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="mimo-train", description=__doc__.split("\n\n")[0])
-    add_data_arguments(p, "data/perception/meta_train")
+    add_data_arguments(p, None)
+    p.add_argument("--features", action="append", default=None, metavar="PATH",
+                   help="feature tables instead of --data: a Parquet file, a directory tree "
+                        "of *.parquet (Hive partitions too) or a glob; repeatable")
+    p.add_argument("--export-features", type=Path, default=None, metavar="DIR",
+                   help="write the dataset as DIR/mimo_points.parquet")
+    p.add_argument("--export-only", action="store_true",
+                   help="with --export-features: write the table and stop (no training)")
     p.add_argument("--out", default="models/mimo", help="model directory")
     p.add_argument("--kind", default="xgboost", choices=meta_model.KINDS)
     p.add_argument("--cv-folds", "--folds", dest="folds", type=meta_model.cv_folds_arg,
                    default=6, help="grouped CV folds over the sequences (0: no CV)")
     p.add_argument("--seed", type=int, default=0)
+    add_scheduler_option(p)
     a = p.parse_args(argv)
+    if a.export_only and a.export_features is None:
+        p.error("--export-only needs --export-features DIR")
     command = "mimo-train " + " ".join(shlex.quote(x) for x in (argv if argv is not None
                                                                else sys.argv[1:]))
     try:
-        s = train(a.data, a.out, cache_dir=a.cache or None, kind=a.kind, folds=a.folds,
-                  seed=a.seed, quiet=a.quiet, command=command, topics=dict(a.topic))
+        check_scheduler(a.scheduler, a.kind)  # before reading any data
+        t0 = time.monotonic()
+        if a.features:
+            if a.data is not None:
+                raise ValueError("--features replaces --data: give one source of training "
+                                 "data")
+            ds = feature_table.read_mimo(a.features)
+            left = ds.info["rows_without_targets"], ds.info["rows_invalid"]
+            if any(left) and not a.quiet:
+                sys.stderr.write(f"feature tables: {left[0]} rows without targets and "
+                                 f"{left[1]} invalid rows left out\n")
+        else:
+            ds = load_bags(a.data or ["data/perception/meta_train"], cache_dir=a.cache or None,
+                           progress=not a.quiet, topics=dict(a.topic))
+        if a.export_features is not None:
+            for path in feature_table.export_tables(ds, a.export_features):
+                print(f"wrote {path}")
+            if a.export_only:
+                return 0
+        with training_backend(a.scheduler, a.kind) as backend:
+            s = train_dataset(ds, a.out, kind=a.kind, folds=a.folds, seed=a.seed,
+                              quiet=a.quiet, command=command, backend=backend, t0=t0)
     except (ValueError, OSError, ModelStoreError) as exc:  # bad data: say why, no traceback
         print(f"mimo-train: {exc}", file=sys.stderr)
         return 2

@@ -1,6 +1,6 @@
 """lmd-train end to end on tiny perception bags: one verified model pair per mode where the
-node looks for them, manifests whose figures are what the models do, a model card, and
-the same models from the same command."""
+node looks for them, manifests whose figures are what the models do, a model card, the
+same models from the same command, and from the feature tables of the same bags."""
 import json
 
 import numpy as np
@@ -156,3 +156,71 @@ def test_model_card_of_kitti_data_names_the_directory():
     assert ("- Training KITTI object directory `/k` (split `training`), detector results "
             "`/r`, no proposals.") in card
     assert "simulated" not in card and "`label_2`" in card
+
+
+# ---------------------------------------------------------------- issue 20: feature tables
+def test_feature_tables_train_the_models_the_bags_train(data, tmp_path, capsys):
+    tables = tmp_path / "tables"
+    assert run(data, tmp_path / "unused", "--export-features", str(tables),
+               "--export-only") == 0
+    printed = capsys.readouterr().out
+    for part in ("train", "test"):
+        for mode in train.MODES:
+            assert f"wrote {tables / part / f'lmd_{mode}.parquet'}" in printed
+    assert not (tmp_path / "unused").exists()
+    bags, tabs = tmp_path / "from_bags", tmp_path / "from_tables"
+    assert run(data, bags, "--modes", "threshold", "none") == 0
+    assert train.main(["--features", str(tables / "train"), "--test-features",
+                       str(tables / "test"), "--out", str(tabs), "--cv-folds", "2",
+                       "--modes", "threshold", "none", "--quiet"]) == 0
+    test = D.load_bags([data / "meta_test"], [D.settings_for("threshold")],
+                       cache_dir=data / "cache", progress=False)["threshold"]
+    for mode in ("threshold", "none"):
+        names = LmdSettings(proposal_mode=mode).feature_names()
+        X = test.X if mode == "threshold" else test.columns(names)
+        pa = MetaModels(bags / f"lmd_{mode}_classifier.joblib",
+                        bags / f"lmd_{mode}_regressor.joblib", names)
+        pb = MetaModels(tabs / f"lmd_{mode}_classifier.joblib",
+                        tabs / f"lmd_{mode}_regressor.joblib", names,
+                        settings=LmdSettings(proposal_mode=mode), method="lmd")
+        for u, v in zip(pa.predict(X), pb.predict(X)):
+            np.testing.assert_array_equal(u, v)
+        ma, mb = (read_manifest(d / f"lmd_{mode}_classifier.joblib") for d in (bags, tabs))
+        assert ma["metrics"] == mb["metrics"]  # cross validation and held-out figures
+        ta, tb = ma["training_data"], mb["training_data"]
+        for k in ("frames", "boxes", "tp", "groups", "gt_boxes", "settings", "target"):
+            assert ta[k] == tb[k], k
+        assert tb["sources"] == [str(tables / "train" / f"lmd_{mode}.parquet")]
+        assert tb["held_out"]["sources"] == [str(tables / "test" / f"lmd_{mode}.parquet")]
+        assert tb["data"] == {"sources": [{"kind": "feature_table", "path": tb["sources"][0],
+                                           "rows": ta["boxes"]}], "simulated": False}
+    card = (tabs / "MODEL_CARD.md").read_text()
+    line = next(t for t in card.splitlines() if "Training feature tables (Parquet): " in t)
+    for mode in ("threshold", "none"):  # one table per mode
+        assert f"`{tables / 'train' / f'lmd_{mode}.parquet'}`" in line
+    # default: every mode of the tables; held-out bags are read with the tables' settings
+    only = tmp_path / "only_none"
+    assert train.main(["--features", str(tables / "train" / "lmd_none.parquet"), "--test",
+                       str(data / "meta_test"), "--cache", str(data / "cache"), "--out",
+                       str(only), "--cv-folds", "2", "--quiet"]) == 0
+    assert sorted(p.name for p in only.glob("*.joblib")) == [
+        "lmd_none_classifier.joblib", "lmd_none_regressor.joblib"]
+    assert read_manifest(only / "lmd_none_classifier.joblib")["metrics"]["held_out"] == \
+        read_manifest(bags / "lmd_none_classifier.joblib")["metrics"]["held_out"]
+
+
+def test_feature_tables_are_one_source_of_data(data, tmp_path, capsys):
+    tables = tmp_path / "t"
+    assert run(data, tmp_path / "x", "--modes", "none", "--export-features", str(tables),
+               "--export-only") == 0
+    capsys.readouterr()
+    assert train.main(["--features", str(tables / "train"), "--train", str(data / "meta_train"),
+                       "--out", str(tmp_path / "m"), "--quiet"]) == 2
+    assert "lmd-train: --features replaces --train / --kitti-root" in capsys.readouterr().err
+    assert train.main(["--features", str(tables / "train"), "--modes", "exact", "--out",
+                       str(tmp_path / "m"), "--quiet"]) == 2
+    assert "lmd-train: no LMD table of mode exact" in capsys.readouterr().err
+    with pytest.raises(SystemExit):
+        train.main(["--export-only", "--out", str(tmp_path / "m")])
+    assert "--export-only needs --export-features DIR" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()

@@ -1,5 +1,5 @@
-"""lms-train: feature sets, grouped cross validation, the CLI end to end, and the node's
-frame processor running the trained models."""
+"""lms-train: feature sets, grouped cross validation, the CLI end to end, the node's
+frame processor running the trained models, and the same models from a feature table."""
 import json
 
 import numpy as np
@@ -131,3 +131,35 @@ def test_model_card_names_the_bags_and_says_simulated_only_for_ours(bags, tmp_pa
         (bags / ".done").unlink()
     card = (tmp_path / "b" / "MODEL_CARD.md").read_text()
     assert "Trained on simulated HDL-64 scans" in card and paths in card
+
+
+# ---------------------------------------------------------------- issue 20: feature tables
+def test_feature_table_trains_the_models_the_bags_train(bags, tmp_path, capsys):
+    tables = tmp_path / "tables"
+    common = ["--folds", "2", "--block-frames", "2"]
+    assert _main([bags], tmp_path / "unused", *common, "--export-features", str(tables),
+                 "--export-only") == 0
+    assert f"wrote {tables / 'lms_points.parquet'}" in capsys.readouterr().out
+    assert not (tmp_path / "unused").exists()
+    assert _main([bags], tmp_path / "a", *common) == 0
+    assert main(["--features", str(tables), "--out", str(tmp_path / "b"), "--quiet",
+                 *common]) == 0
+    ma, mb = (read_manifest(tmp_path / d / "lms_classifier.joblib") for d in "ab")
+    assert ma["metrics"] == mb["metrics"]  # the same folds and figures
+    ta, tb = ma["training_data"], mb["training_data"]
+    for k in ("sequences", "n_frames", "n_segments", "n_groups", "block_frames", "settings",
+              "excluded_small_segments", "dropped_undefined_iou", "ignore_label", "ring_from"):
+        assert ta[k] == tb[k], k
+    assert tb["sources"] == [str(tables / "lms_points.parquet")]
+    assert tb["data"]["sources"] == [{"kind": "feature_table", "path": tb["sources"][0]}]
+    ds = build_dataset(bags, SETTINGS, block_frames=2, quiet=True)
+    pa, pb = (MetaModels(tmp_path / d / "lms_classifier.joblib",
+                         tmp_path / d / "lms_regressor.joblib", SETTINGS.metric_names(),
+                         settings=SETTINGS, method="lms") for d in "ab")
+    for u, v in zip(pa.predict(ds.X), pb.predict(ds.X)):
+        np.testing.assert_array_equal(u, v)
+    card = (tmp_path / "b" / "MODEL_CARD.md").read_text()
+    assert f"- Feature tables (Parquet): `{tables / 'lms_points.parquet'}`." in card
+    assert main(["--features", str(tables), "--data", str(bags), "--out",
+                 str(tmp_path / "c"), "--quiet"]) == 2
+    assert "lms-train: --features replaces --data" in capsys.readouterr().err

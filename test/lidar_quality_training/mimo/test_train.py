@@ -1,5 +1,5 @@
 """mimo-train end to end on tiny perception bags: two verified model pairs and a model card
-that the node's model loading accepts."""
+that the node's model loading accepts; the same pairs from a feature table."""
 import json
 
 import numpy as np
@@ -121,3 +121,47 @@ def test_model_card_says_simulated_for_our_bags(trained, tmp_path, monkeypatch):
     card = (tmp_path / "MODEL_CARD.md").read_text()
     assert "Simulated perception bags (`lidar_sim` scenes, reference perception with 2 heads" \
         in card and "Trained on simulated scans" in card
+
+
+# ---------------------------------------------------------------- issue 20: feature tables
+def test_feature_table_trains_the_models_the_bags_train(trained, tmp_path, capsys):
+    import pyarrow.parquet as pq
+
+    bags, out, root = trained
+    tables = tmp_path / "tables"
+    assert main(["--data", str(bags), "--cache", str(root / "cache"), "--export-features",
+                 str(tables), "--export-only", "--quiet"]) == 0
+    assert f"wrote {tables / 'mimo_points.parquet'}" in capsys.readouterr().out
+    assert main(["--features", str(tables), "--out", str(tmp_path / "m"), "--folds", "2",
+                 "--quiet"]) == 0
+    ds = load_bags([bags], cache_dir=root / "cache", progress=False)
+    for use_points, prefix in ((False, "mimo"), (True, "mimo_points")):
+        settings = MimoSettings(num_heads=2, use_points=use_points)
+        a, b = (MetaModels(d / f"{prefix}_classifier.joblib", d / f"{prefix}_regressor.joblib",
+                           settings.feature_names(), settings=settings, method="mimo")
+                for d in (out, tmp_path / "m"))
+        X, _ = ds.features(use_points)
+        for u, v in zip(a.predict(X), b.predict(X)):
+            np.testing.assert_array_equal(u, v)
+        ma, mb = (json.loads((d / f"{prefix}_classifier.joblib.manifest.json").read_text())
+                  for d in (out, tmp_path / "m"))
+        assert ma["metrics"] == mb["metrics"]
+        ta, tb = ma["training_data"], mb["training_data"]
+        for k in ("groups", "frames", "rows", "merge_settings", "cv_folds"):
+            assert ta[k] == tb[k], k
+        assert tb["sources"] == [str(tables / "mimo_points.parquet")]
+    card = (tmp_path / "m" / "MODEL_CARD.md").read_text()
+    assert "Feature tables (Parquet) of perception bags with 2 detector heads" in card
+    # a table without the point features (process_bags, use_points: false): the mimo pair
+    t = pq.read_table(tables / "mimo_points.parquet")
+    meta = dict(t.schema.metadata)
+    names = json.loads(meta[b"lq.feature_names"])[:len(MimoSettings().feature_names())]
+    meta.update({b"lq.mode": b"no_points", b"lq.feature_names": json.dumps(names).encode()})
+    cut = t.drop_columns([c for c in t.column_names if c.startswith("feat.")
+                          and c[5:] not in names]).replace_schema_metadata(meta)
+    (tmp_path / "np").mkdir()
+    pq.write_table(cut, tmp_path / "np" / "part-0.parquet")
+    assert main(["--features", str(tmp_path / "np"), "--out", str(tmp_path / "n"), "--folds",
+                 "2", "--quiet"]) == 0
+    assert sorted(p.name for p in (tmp_path / "n").glob("*.joblib")) == [
+        "mimo_classifier.joblib", "mimo_regressor.joblib"]
