@@ -332,7 +332,7 @@ def worker_environ() -> dict:
     import distributed  # noqa: F401 - registers distributed's configuration defaults
 
     env = dict(dask.config.get("distributed.nanny.pre-spawn-environ", {}))
-    env.pop("MALLOC_TRIM_THRESHOLD_", None)
+    env["MALLOC_TRIM_THRESHOLD_"] = None     # None: not set (distributed's convention)
     return env
 
 
@@ -342,6 +342,12 @@ def local_cluster(n_workers: int):
     import dask
     from distributed import LocalCluster
 
+    # a nanny writes its environment into this process's os.environ before it spawns:
+    # after any other LocalCluster here, Dask's trim threshold would be inherited
+    dask_value = dask.config.get("distributed.nanny.pre-spawn-environ", {}).get(
+        "MALLOC_TRIM_THRESHOLD_")
+    if dask_value is not None and os.environ.get("MALLOC_TRIM_THRESHOLD_") == str(dask_value):
+        del os.environ["MALLOC_TRIM_THRESHOLD_"]
     with dask.config.set({"distributed.nanny.pre-spawn-environ": worker_environ()}):
         return LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                             host="127.0.0.1", dashboard_address="127.0.0.1:0")

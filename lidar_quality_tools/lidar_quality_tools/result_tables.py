@@ -6,9 +6,10 @@ One row per scored item of a processed frame, in output order:
 * ``mimo``: every merged detection;
 * ``lms``: every kept segment (the ones with metrics and a confidence).
 
-Columns (the names the feature tables of ``lidar_quality_training.feature_table`` use, so
-that a table of labelled bags trains a meta model): ``group`` (``bag_group``), ``source``
-(the bag), ``frame_key`` (header stamp [ns] as text), ``stamp_ns``, ``frame_id``,
+The format is ``lidar_quality_training.feature_table``'s (its column names, metadata and
+atomic writer), so that the table of a labelled bag trains a meta model
+(``lmd-train --features``); these tables add the nodes' outputs. Columns: ``group``
+(``bag_group``), ``source`` (the bag), ``frame_key`` (header stamp [ns] as text), ``stamp_ns``, ``frame_id``,
 ``index`` (position among the frame's items: detection index, merged index or segment
 id), the outputs ``confidence``, ``predicted_iou`` and (detections) ``kept``, the
 features as ``feat.<name>`` in the model's order, and per method:
@@ -22,22 +23,19 @@ features as ``feat.<name>`` in the model's order, and per method:
   (``lms.targets.segment_targets``, label 0 ignored) when the bag has the ground-truth
   cloud (``points_gt`` topic, one label per input point), else NaN.
 
-Schema metadata: ``lq.method``, ``lq.mode``, ``lq.feature_names`` (JSON), ``lq.settings``
-(JSON), ``lq.models`` (JSON: the model ids), ``lq.version``.
+Schema metadata: ``feature_table.schema_metadata`` (method, mode, feature names,
+settings) plus ``lq.models`` (JSON: the ids of the models that gave the outputs).
 """
 from __future__ import annotations
 
 import dataclasses
 import json
-import os
-from pathlib import Path
 
 import numpy as np
+from lidar_quality_training.feature_table import FEATURE_PREFIX, schema_metadata, write_table
 
-__all__ = ["VERSION", "FEATURE_PREFIX", "BOX_COLUMNS", "ResultRows", "write_table"]
+__all__ = ["FEATURE_PREFIX", "BOX_COLUMNS", "ResultRows", "write_table"]
 
-VERSION = "1"
-FEATURE_PREFIX = "feat."
 BOX_COLUMNS = ("box_x", "box_y", "box_z", "box_l", "box_w", "box_h", "box_yaw")
 IGNORE_LABEL = 0   # the LMS datasets' unlabelled class
 
@@ -164,9 +162,10 @@ class ResultRows:
                 continue
             cols = {k: np.concatenate([p[k] for p in parts]) for k in parts[0]}
             table = pa.table({k: pa.array(v) for k, v in cols.items()})
-            meta = {f"lq.{k}": json.dumps(v) if not isinstance(v, str) else v
-                    for k, v in self.meta[node].items()}
-            out[node] = table.replace_schema_metadata({**meta, "lq.version": VERSION})
+            m = self.meta[node]
+            meta = schema_metadata(node, m["mode"], m["feature_names"], m["settings"])
+            out[node] = table.replace_schema_metadata(
+                {**meta, b"lq.models": json.dumps(m["models"]).encode()})
         return out
 
 
@@ -195,19 +194,7 @@ def _meta(runner) -> dict:
         mode, names = s.proposal_mode, list(s.feature_names())
     elif runner.name == "mimo":
         mode, names = "points" if s.use_points else "no_points", list(s.feature_names())
-    else:
-        mode, names = "segments", []   # the metric names come with the first frame
+    else:   # where the image rows come from; the metric names come with the first frame
+        mode, names = ("points" if "points" in runner.topics else "segmentation"), []
     return {"method": runner.name, "mode": mode, "feature_names": names,
             "settings": _settings_json(s), "models": ids}
-
-
-def write_table(table, path: Path | str) -> Path:
-    """Write ``table`` to ``path`` (Parquet) atomically: a temporary file renamed."""
-    import pyarrow.parquet as pq
-
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    pq.write_table(table, tmp)
-    os.replace(tmp, path)
-    return path

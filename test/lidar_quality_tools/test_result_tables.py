@@ -28,7 +28,7 @@ def run(tmp_path_factory):
                  "--no-progress"]) == 0
     tables = {n: pq.read_table(res / n / "bag=seq_00" / "part-0000.parquet")
               for n in ("lmd", "lms", "mimo")}
-    return bags / "seq_00", out, tables
+    return bags / "seq_00", out, tables, res
 
 
 def quality(out, topic):
@@ -40,7 +40,7 @@ def meta(table):
 
 
 def test_lmd_rows_are_the_quality_messages_and_the_models_features(run):
-    bag, out, tables = run
+    bag, out, tables, _ = run
     t = tables["lmd"].to_pandas()
     q = [(m.header.stamp.sec * 10**9 + m.header.stamp.nanosec, d) for m in
          quality(out, "/lmd/output/quality") for d in m.detections]
@@ -62,7 +62,7 @@ def test_lmd_rows_are_the_quality_messages_and_the_models_features(run):
 
 
 def test_box_targets_from_the_ground_truth(run):
-    bag, out, tables = run
+    bag, out, tables, _ = run
     gt = {m.stamp_ns: m.decode() for m in read_bag(bag, {"/lidar/gt_objects"})}
     gt = {str(g.header.stamp.sec * 10**9 + g.header.stamp.nanosec): detections_to_arrays(g)
           for g in gt.values()}
@@ -79,7 +79,7 @@ def test_box_targets_from_the_ground_truth(run):
 
 
 def test_lms_rows_are_the_segment_messages_with_targets(run):
-    bag, out, tables = run
+    bag, out, tables, _ = run
     t = tables["lms"].to_pandas()
     segs = [s for m in quality(out, "/lms/output/segments") for s in m.segments
             if np.isfinite(s.confidence)]
@@ -97,7 +97,7 @@ def test_lms_rows_are_the_segment_messages_with_targets(run):
 def test_bag_without_ground_truth_gives_nan_targets(run, tmp_path):
     from lidar_quality_ros.bag_io import BagWriter, bag_info
 
-    bag, _, _ = run
+    bag, _, _, _ = run
     info = bag_info(bag)
     stripped = tmp_path / "no_gt"
     with BagWriter(stripped) as w:
@@ -112,3 +112,24 @@ def test_bag_without_ground_truth_gives_nan_targets(run, tmp_path):
     lms = pq.read_table(res / "lms" / "bag=no_gt" / "part-0000.parquet").to_pandas()
     assert len(lmd) and lmd["iou_any"].isna().all() and lmd["confidence"].notna().any()
     assert len(lms) and lms["iou_adj"].isna().all()
+
+
+def test_tables_read_back_as_the_dataset_builders_rows(run):
+    """The table of a labelled bag is training data: read by ``feature_table`` it gives the
+    rows, features and targets the LMD / MIMO dataset builders compute from the bag."""
+    from lidar_quality_training.feature_table import read_lmd, read_mimo
+    from lidar_quality_training.lmd.dataset import load_bags, settings_for
+    from lidar_quality_training.mimo.dataset import load_bags as load_mimo
+
+    bag, _, _, res = run
+    table = read_lmd([res / "lmd"])["threshold"]
+    built = load_bags([bag], [settings_for("threshold")], progress=False)["threshold"]
+    assert len(table) == len(built) > 0
+    assert np.array_equal(table.X, built.X, equal_nan=True)
+    assert np.allclose(table.iou_any, built.iou_any) and np.allclose(table.score, built.score)
+    assert table.group.tolist() == built.group.tolist()
+    mimo = read_mimo([res / "mimo"])
+    built = load_mimo([bag], progress=False)
+    assert len(mimo) == len(built) > 0
+    assert np.allclose(mimo.m_iou_any, built.m_iou_any)
+    assert np.allclose(mimo.X, built.X[:, :mimo.X.shape[1]], equal_nan=True)
