@@ -187,3 +187,24 @@ def test_cli_table_and_exit_code(bags, client, tmp_path, capsys):
     with pytest.raises(SystemExit) as exc:
         main(["--bags", str(bags), "--out", str(out), "--nodes", "nope"])
     assert exc.value.code == 2
+
+
+def test_installed_executables_embedded_cluster(bags, tmp_path):
+    """``process_bags`` as installed, with its own LocalCluster (the default), then
+    ``fleet_review`` on its output."""
+    import subprocess
+
+    from node_shell_checks import executable
+
+    out = tmp_path / "fleet"
+    run = subprocess.run([str(executable("lidar_quality_tools", "process_bags")), "--bags",
+                          str(bags / "seq_01"), "--out", str(out), "--workers", "1",
+                          "--nodes", "lmd"], capture_output=True, text=True, timeout=300)
+    assert run.returncode == 0, run.stderr[-2000:]
+    assert "local cluster of 1 worker process(es), dashboard http://127.0.0.1:" in run.stderr
+    assert "1/1 task(s) done" in run.stdout
+    review = subprocess.run([str(executable("lidar_quality_tools", "fleet_review")), str(out),
+                             "--k", "5", "--thumbnails", "2"], capture_output=True, text=True,
+                            timeout=300)
+    assert review.returncode == 0, review.stderr[-2000:]
+    assert (out / "review" / "sheet_annotation_errors.png").exists()
