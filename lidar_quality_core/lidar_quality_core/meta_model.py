@@ -54,7 +54,7 @@ __all__ = ["KINDS", "TASKS", "make_estimator", "fit_estimator", "training_arrays
            "group_folds", "FoldMetrics", "CVResult", "fit_folds", "cross_validate",
            "GreedyResult", "greedy_selection",
            "SETTINGS_SECTION", "SETTING_RULES", "settings_record", "check_settings",
-           "MetaModels", "save_pair", "SIMULATED_DATA_DIR", "simulated_sources",
+           "MetaModels", "save_pair", "training_profile", "SIMULATED_DATA_DIR", "simulated_sources",
            "cv_folds_arg", "cv_fold_count"]
 
 KINDS = ("xgboost", "gradient_boosting", "linear", "random_forest", "mlp")
@@ -504,6 +504,15 @@ class MetaModels:
     def iou_model_id(self) -> str:
         return self.regressor.model_id
 
+    @property
+    def domain_profile(self):
+        """The training data's ``DomainProfile`` from the classifier's manifest (None for
+        models trained before profiles were recorded)."""
+        from .domain_profile import DomainProfile
+
+        d = (self.classifier.manifest.get("training_data") or {}).get("domain_profile")
+        return DomainProfile.from_json(d) if d else None
+
     def predict(self, X) -> tuple[np.ndarray, np.ndarray]:
         """``(confidence, predicted_iou)``, both in [0, 1]; NaN for all-NaN rows."""
         X = np.asarray(X, dtype=np.float64)
@@ -555,9 +564,12 @@ def save_pair(out_dir, prefix: str, classifier, regressor, feature_names: Sequen
               training_data: dict[str, Any] | None = None,
               classifier_metrics: dict[str, Any] | None = None,
               regressor_metrics: dict[str, Any] | None = None,
-              compress: int = 0) -> tuple[Path, Path]:
+              compress: int = 0, domain_profile: dict | None = None) -> tuple[Path, Path]:
     """Save ``<prefix>_classifier.joblib`` and ``<prefix>_regressor.joblib`` with manifests
-    (``compress``: joblib zlib level, see ``model_store.save_model``)."""
+    (``compress``: joblib zlib level, see ``model_store.save_model``); ``domain_profile``
+    (``training_profile``) goes into both manifests' ``training_data``."""
+    if domain_profile is not None:
+        training_data = {**(training_data or {}), "domain_profile": domain_profile}
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     cpath, rpath = out / f"{prefix}_classifier.joblib", out / f"{prefix}_regressor.joblib"
@@ -566,6 +578,18 @@ def save_pair(out_dir, prefix: str, classifier, regressor, feature_names: Sequen
     save_model(regressor, rpath, feature_names=list(feature_names), task="regression",
                training_data=training_data, metrics=regressor_metrics, compress=compress)
     return cpath, rpath
+
+
+def training_profile(X, feature_names: Sequence[str], extra: dict | None = None) -> dict:
+    """The domain profile (``domain_profile.DomainProfile``, JSON) of a training set: every
+    feature column by name, plus ``extra`` quantities (``{name: values}``, e.g. the
+    detector's scores, points per frame)."""
+    from .domain_profile import DomainProfile
+
+    X = np.asarray(X, np.float64)
+    cols = {n: X[:, j] for j, n in enumerate(feature_names)}
+    cols.update(extra or {})
+    return DomainProfile.of(cols).to_json()
 
 
 def model_path_param(role: str, target: str, shipped: str):

@@ -154,3 +154,19 @@ def test_mimo_use_points_comes_from_the_feature_schema(tmp_path):
         mm.check_settings(read_manifest(c), {**current, "use_points": True}, "mimo")
     with pytest.raises(ValueError, match="method"):
         mm.check_settings(read_manifest(c), current, "lmx")
+
+
+def test_models_without_a_recorded_profile_have_none(tmp_path):
+    """Models saved before profiles were recorded (the shipped ones until retrained)."""
+    rng = np.random.default_rng(0)
+    X, names = rng.normal(size=(200, 3)), ["a", "b", "c"]
+    y = (X[:, 0] > 0).astype(float)
+    clf = mm.fit_estimator("linear", "classification", X, y)
+    reg = mm.fit_estimator("linear", "regression", X, X[:, 1])
+    old = mm.MetaModels(*mm.save_pair(tmp_path / "old", "toy", clf, reg, names), names)
+    assert old.domain_profile is None
+    prof = mm.training_profile(X, names, {"score": y})
+    new = mm.MetaModels(*mm.save_pair(tmp_path / "new", "toy", clf, reg, names,
+                                   domain_profile=prof), names)
+    assert set(new.domain_profile.quantities) == {"a", "b", "c", "score"}
+    assert new.domain_profile.quantities["a"].count == 200

@@ -178,10 +178,15 @@ def train(train_sets: dict, test_sets: dict | None, out: Path, *, kind: str = "x
             training["cross_validation"] = "skipped: --cv-folds 0"
         if backend.record():
             training["fitted_on"] = backend.record()
+        points = ds.frame_points[ds.frame_points >= 0]   # -1: unknown (feature tables)
+        profile = meta_model.training_profile(ds.X, ds.feature_names, {
+            "detector score": ds.score, "boxes per frame": np.bincount(
+                ds.frame, minlength=ds.n_frames), "points per frame": points})
         cpath, rpath = meta_model.save_pair(out, f"lmd_{mode}", clf, reg, ds.feature_names,
                                             training_data=_round(training),
                                             classifier_metrics=_round(cmet),
-                                            regressor_metrics=_round(rmet), compress=3)
+                                            regressor_metrics=_round(rmet), compress=3,
+                                            domain_profile=_round(profile))
         results[mode] = {"training": training, "classifier": cmet, "regressor": rmet,
                          "n_features": len(ds.feature_names),
                          "files": [str(cpath), str(rpath)],

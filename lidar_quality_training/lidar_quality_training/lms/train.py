@@ -294,6 +294,8 @@ def train(ds: SegmentDataset, out, *, kind: str = "xgboost", n_folds: int = 10,
         training_data["fitted_on"] = backend.record()
     cpath, rpath = meta_model.save_pair(out, PREFIX, clf, reg, ds.names,
                                         training_data=training_data,
+                                        domain_profile=meta_model.training_profile(
+                                            ds.X, ds.names),
                                         classifier_metrics=task_cv("classification"),
                                         regressor_metrics=task_cv("regression"))
     sizes = {p.name: p.stat().st_size for p in (cpath, rpath)}

@@ -47,6 +47,14 @@ def test_train_writes_verified_models_per_mode(data, tmp_path, monkeypatch, caps
         assert td["sources"] == ["meta_train/seq_00", "meta_train/seq_01", "meta_train/seq_02"]
         assert td["settings"]["proposal_mode"] == mode and td["tp_rule"] == "IoU_BEV >= 0.5"
         assert td["held_out"]["boxes"] == len(test)
+        # the training data's domain profile: every feature, the scores, frames' points
+        prof = models.domain_profile
+        assert set(prof.quantities) == {*settings.feature_names(), "detector score",
+                                        "boxes per frame", "points per frame"}
+        assert prof.quantities["detector score"].count == len(trn)
+        assert prof.quantities["detector score"].median == pytest.approx(
+            float(np.median(trn.score)), abs=1e-5)
+        assert prof.quantities["points per frame"].count == 6
         held = man["metrics"]["held_out"]
         assert held["auroc"] == pytest.approx(M.auroc(test.tp, conf), abs=1e-5)
         assert held["ece"] == pytest.approx(M.ece(test.tp, conf), abs=1e-5)

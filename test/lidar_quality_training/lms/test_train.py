@@ -67,6 +67,7 @@ def test_cli_trains_loadable_models_the_node_runs(bags, tmp_path):
     assert set(man["metrics"]["cv_val"]) >= {"accuracy", "auroc", "auprc_fp"}
     assert cpath.stat().st_size + rpath.stat().st_size < 2_000_000
     models = MetaModels(cpath, rpath, SETTINGS.metric_names())
+    assert set(models.domain_profile.quantities) == set(SETTINGS.metric_names())
     # the node's frame work with these models
     proc = LmsProcessor(SETTINGS, models)
     f = next(perception_frames(sorted(bags.iterdir())[0], want=("points", "segmentation")))

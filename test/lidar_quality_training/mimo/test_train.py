@@ -58,6 +58,9 @@ def test_models_load_through_the_store_and_rank_the_training_data(trained):
         # fitted on these rows: a real model separates them and tracks the IoU
         assert metrics.auroc(ds.tp, conf) > 0.9
         assert metrics.r2(ds.m_iou_class, iou) > 0.5
+        prof = mm.domain_profile
+        assert set(prof.quantities) == {*names, "detector score", "boxes per frame"}
+        assert prof.quantities[names[0]].count == np.isfinite(X[:, 0]).sum()
     # the schema is enforced: the statistics model refuses the point features' schema
     with pytest.raises(ModelStoreError):
         MetaModels(out / "mimo_classifier.joblib", out / "mimo_regressor.joblib",

@@ -1,0 +1,205 @@
+"""Domain profile and drift score: how far live inputs are from a meta model's training data.
+
+A :class:`DomainProfile` summarises the training data of a model quantity by quantity
+(each feature column; per-frame input statistics such as points per frame, intensity or
+the detector's scores): the quantiles at ``LEVELS`` (0, 5, ..., 100 %) of its finite
+values, their count, and the fraction of missing (NaN) values. It is JSON (stored in a
+model's manifest) and small: 23 numbers per quantity.
+
+Drift of live values against a quantity: the population stability index (PSI) over the
+profile's quantile bins. Training puts mass q_i in bin i (1/B for B bins between
+quantiles, ties merged), the live sample p_i; PSI = sum (p_i - q_i) ln(p_i / q_i), both
+floored at ``EPS``. A missing-value rate is one more bin. For small samples PSI is biased
+upwards (under no shift its expectation is about (B - 1) / n, as a chi-square over n):
+:func:`psi` uses fewer bins for few values (about ``VALUES_PER_BIN`` live values a bin)
+and subtracts that expectation, so that in-domain windows score near 0 whatever their
+size. Conventional reading: < 0.1 no shift, 0.1-0.25 moderate, > 0.25 major.
+
+:class:`DriftMonitor` keeps the last ``window`` frames' values per quantity; after each
+frame, ``score`` is the largest PSI over the quantities with at least ``min_values``
+values in the window (a per-frame statistic needs that many frames; a per-box feature a
+frame or two), the most drifted ones named in words by :func:`explain`, and ``level``
+OK / WARN / ERROR from two thresholds. The default thresholds are the conventional PSI
+readings; they are to be calibrated on held-out in-domain frames and simulated shifts
+(issue 18's domain-shift benchmark).
+"""
+from __future__ import annotations
+
+import math
+from collections import deque
+from dataclasses import dataclass, field
+from typing import Iterable, Mapping
+
+import numpy as np
+
+__all__ = ["LEVELS", "EPS", "VALUES_PER_BIN", "QuantityProfile", "DomainProfile", "psi",
+           "DriftMonitor", "DriftReport", "explain"]
+
+LEVELS = tuple(np.linspace(0.0, 1.0, 21).round(4).tolist())   # 0, 5, ..., 100 %
+EPS = 1e-4
+VALUES_PER_BIN = 5
+OK, WARN, ERROR = 0, 1, 2
+#: what a drifted quantity most likely means (quantity name -> hint), for the log line
+HINTS = {"intensity": "intensity scale?", "reflectance": "intensity scale?",
+         "score": "another detector?", "points": "another sensor or cropping?",
+         "range": "another sensor or scene?", "class": "another detector or scene?"}
+
+
+@dataclass(frozen=True)
+class QuantityProfile:
+    """Quantiles at ``LEVELS`` of a quantity's finite training values, their count and
+    the fraction of values that were missing (NaN)."""
+
+    quantiles: tuple
+    count: int
+    missing: float = 0.0
+
+    @classmethod
+    def of(cls, values) -> "QuantityProfile":
+        v = np.asarray(values, np.float64).reshape(-1)
+        finite = v[np.isfinite(v)]
+        missing = 1.0 - len(finite) / len(v) if len(v) else 0.0
+        q = np.quantile(finite, LEVELS) if len(finite) else np.full(len(LEVELS), np.nan)
+        return cls(tuple(float(x) for x in q), int(len(finite)), float(missing))
+
+    @property
+    def median(self) -> float:
+        return self.quantiles[len(LEVELS) // 2]
+
+    def to_json(self) -> dict:
+        return {"quantiles": list(self.quantiles), "count": self.count,
+                "missing": self.missing}
+
+    @classmethod
+    def from_json(cls, d: Mapping) -> "QuantityProfile":
+        q = tuple(float(x) if x is not None else math.nan for x in d["quantiles"])
+        if len(q) != len(LEVELS):
+            raise ValueError(f"a profile has {len(LEVELS)} quantiles, got {len(q)}")
+        return cls(q, int(d["count"]), float(d.get("missing", 0.0)))
+
+
+@dataclass(frozen=True)
+class DomainProfile:
+    """Quantity name -> :class:`QuantityProfile` (module docstring)."""
+
+    quantities: dict = field(default_factory=dict)
+
+    @classmethod
+    def of(cls, columns: Mapping[str, Iterable]) -> "DomainProfile":
+        """The profile of ``{name: training values}``."""
+        return cls({name: QuantityProfile.of(v) for name, v in columns.items()})
+
+    def to_json(self) -> dict:
+        return {"version": 1, "levels": list(LEVELS),
+                "quantities": {k: q.to_json() for k, q in self.quantities.items()}}
+
+    @classmethod
+    def from_json(cls, d: Mapping) -> "DomainProfile":
+        if d.get("version") != 1:
+            raise ValueError(f"unknown domain profile version {d.get('version')!r}")
+        return cls({k: QuantityProfile.from_json(q) for k, q in d["quantities"].items()})
+
+
+def _bins(quantiles: np.ndarray, n_bins: int):
+    """Inner edges of ``n_bins`` quantile bins (equal edges merged) and the training mass
+    of each bin (``x`` falls in bin ``j`` when ``inner[j-1] <= x < inner[j]``)."""
+    idx = np.round(np.linspace(0, len(quantiles) - 1, n_bins + 1)).astype(int)
+    inner = np.unique(quantiles[idx[1:-1]])
+    # P(X < u) from the quantiles: the first level whose quantile reaches u; a tie (a
+    # point mass) thereby stays in the bin that starts at it
+    below = np.asarray(LEVELS)[np.searchsorted(quantiles, inner, side="left")]
+    return inner, np.diff(np.r_[0.0, below, 1.0])
+
+
+def psi(profile: QuantityProfile, values) -> float:
+    """Bias-corrected population stability index of ``values`` against ``profile``
+    (module docstring); NaN when either side has no value."""
+    v = np.asarray(values, np.float64).reshape(-1)
+    if not len(v) or profile.count == 0:
+        return math.nan
+    finite = v[np.isfinite(v)]
+    n = len(v)
+    n_bins = int(np.clip(n // VALUES_PER_BIN, 2, len(LEVELS) - 1))
+    inner, q = _bins(np.asarray(profile.quantiles), n_bins)
+    counts = np.bincount(np.searchsorted(inner, finite, side="right"),
+                         minlength=len(q)).astype(np.float64)
+    counts = np.r_[counts, n - len(finite)]
+    q = np.r_[q * (1.0 - profile.missing), profile.missing]
+    used = (counts > 0) | (q > 0)
+    counts, q = counts[used], np.maximum(q[used], EPS)
+    # half a value added to every bin (Jeffreys): an empty bin of a small sample is not
+    # read as a vanished part of the distribution
+    p = (counts + 0.5) / (n + 0.5 * len(counts))
+    raw = float(np.sum((p - q) * np.log(p / q)))
+    expected = (len(p) - 1) * (1.0 / n + 1.0 / max(profile.count, 1))
+    return max(raw - expected, 0.0)
+
+
+def explain(name: str, profile: QuantityProfile, values) -> str:
+    """The drift of one quantity in words: live against training median, and a hint."""
+    v = np.asarray(values, np.float64).reshape(-1)
+    finite = v[np.isfinite(v)]
+    parts = [name]
+    if len(finite) and np.isfinite(profile.median):
+        live, train = float(np.median(finite)), profile.median
+        parts.append(f"median {live:.3g}, training median {train:.3g}")
+        if train != 0 and live / train > 0 and abs(math.log(abs(live / train))) >= math.log(3):
+            parts.append(f"({live / train:.3g}x)")
+    miss = 1.0 - len(finite) / len(v) if len(v) else 0.0
+    if abs(miss - profile.missing) > 0.1:
+        parts.append(f"missing {100 * miss:.0f} % (training {100 * profile.missing:.0f} %)")
+    hint = next((h for key, h in HINTS.items() if key in name.lower()), None)
+    text = " ".join(parts)
+    return f"{text}: {hint}" if hint else text
+
+
+@dataclass
+class DriftReport:
+    """The monitor's state after a frame: window score, level, the most drifted
+    quantities (name, PSI) largest first, and their description in words."""
+
+    score: float
+    level: int
+    drifted: list
+    text: str
+    frames: int
+
+
+class DriftMonitor:
+    """Rolling drift of live frames against a profile (module docstring). ``add(values)``
+    takes one frame's ``{quantity: values}`` (per-row values or one per-frame value) and
+    returns the :class:`DriftReport` over the last ``window`` frames."""
+
+    def __init__(self, profile: DomainProfile, *, window: int = 50, warn: float = 0.25,
+                 error: float = 0.5, top: int = 3, min_values: int = 30):
+        if window < 1:
+            raise ValueError("window must be at least 1 frame")
+        if not 0 <= warn <= error:
+            raise ValueError(f"need 0 <= warn <= error, got {warn}, {error}")
+        self.profile, self.window, self.warn, self.error, self.top = (
+            profile, window, warn, error, top)
+        self.min_values = min_values
+        self._frames: deque = deque(maxlen=window)
+
+    def add(self, values: Mapping[str, object]) -> DriftReport:
+        frame = {k: np.asarray(v, np.float64).reshape(-1) for k, v in values.items()
+                 if k in self.profile.quantities}
+        self._frames.append(frame)
+        scores = {}
+        live = {}
+        for name, prof in self.profile.quantities.items():
+            parts = [f[name] for f in self._frames if name in f]
+            if not parts:
+                continue
+            live[name] = np.concatenate(parts)
+            if len(live[name]) < self.min_values:
+                continue       # too few values to tell a shift from chance
+            s = psi(prof, live[name])
+            if np.isfinite(s):
+                scores[name] = s
+        ranked = sorted(scores.items(), key=lambda kv: -kv[1])
+        score = ranked[0][1] if ranked else 0.0
+        level = ERROR if score >= self.error else WARN if score >= self.warn else OK
+        drifted = [(k, round(v, 4)) for k, v in ranked[:self.top] if v >= self.warn]
+        text = "; ".join(explain(k, self.profile.quantities[k], live[k]) for k, _ in drifted)
+        return DriftReport(float(score), level, drifted, text, len(self._frames))

@@ -1,0 +1,88 @@
+"""Domain profile and drift score: JSON round trip, in-domain samples near 0 at every
+sample size, shifts of location, scale and missing rate scored high, point masses
+(discrete features), the rolling monitor's levels and its words."""
+import json
+
+import numpy as np
+import pytest
+from lidar_quality_core.domain_profile import (ERROR, OK, DomainProfile, DriftMonitor,
+                                               QuantityProfile, explain, psi)
+
+
+@pytest.fixture(scope="module")
+def gamma():
+    return QuantityProfile.of(np.random.default_rng(0).gamma(2.0, 1.0, 20_000))
+
+
+def test_json_round_trip():
+    rng = np.random.default_rng(1)
+    p = DomainProfile.of({"a": rng.normal(size=500), "b": np.r_[rng.normal(size=50), [np.nan]]})
+    back = DomainProfile.from_json(json.loads(json.dumps(p.to_json())))
+    assert back == p
+    assert back.quantities["b"].missing == pytest.approx(1 / 51)
+    with pytest.raises(ValueError, match="version"):
+        DomainProfile.from_json({"version": 9, "quantities": {}})
+
+
+@pytest.mark.parametrize("n", [100, 1000, 10_000])
+def test_in_domain_samples_score_near_zero(gamma, n):
+    rng = np.random.default_rng(n)
+    scores = np.array([psi(gamma, rng.gamma(2.0, 1.0, n)) for _ in range(200)])
+    assert np.percentile(scores, 99) < 0.25       # the WARN reading, 1 % of windows
+    assert np.median(scores) < 0.02
+
+
+@pytest.mark.parametrize("shift", ["location", "scale", "missing"])
+def test_shifts_score_high(gamma, shift):
+    rng = np.random.default_rng(2)
+    v = rng.gamma(2.0, 1.0, 500)
+    v = {"location": v + 1.5, "scale": v * 40.0,
+         "missing": np.where(rng.random(500) < 0.5, np.nan, v)}[shift]
+    assert psi(gamma, v) > 0.5
+
+
+def test_point_masses_of_a_discrete_feature():
+    rng = np.random.default_rng(3)
+    prof = QuantityProfile.of(rng.integers(0, 4, 20_000).astype(float))
+    same = [psi(prof, rng.integers(0, 4, 200).astype(float)) for _ in range(100)]
+    assert max(same) < 0.25
+    assert psi(prof, rng.integers(2, 4, 200).astype(float)) > 0.5   # half the classes gone
+
+
+def test_empty_sides_are_nan(gamma):
+    assert np.isnan(psi(gamma, []))
+    assert np.isnan(psi(QuantityProfile.of([np.nan]), [1.0, 2.0]))
+
+
+def test_monitor_levels_and_words():
+    rng = np.random.default_rng(4)
+    prof = DomainProfile.of({"mean_intensity": rng.uniform(0, 1, 5000),
+                             "score": rng.beta(5, 2, 20_000)})
+    mon = DriftMonitor(prof, window=10, min_values=30)
+    for _ in range(30):                                    # in domain: quiet
+        r = mon.add({"mean_intensity": rng.uniform(0, 1, 8), "score": rng.beta(5, 2, 40)})
+        assert r.level == OK, r
+    levels = []
+    for _ in range(10):                                    # intensity read as 0..255
+        r = mon.add({"mean_intensity": rng.uniform(0, 255, 8), "score": rng.beta(5, 2, 40)})
+        levels.append(r.level)
+    assert levels[-1] == ERROR and levels.index(ERROR) <= 5
+    assert r.drifted[0][0] == "mean_intensity"
+    assert "intensity scale?" in r.text and "x)" in r.text
+
+
+def test_monitor_needs_enough_values():
+    prof = DomainProfile.of({"points": np.random.default_rng(5).normal(1e5, 1e3, 1000)})
+    mon = DriftMonitor(prof, window=50, min_values=30)
+    for k in range(29):                                     # one value a frame
+        assert mon.add({"points": [5e4]}).score == 0.0     # not scored yet
+    r = mon.add({"points": [5e4]})
+    assert r.level == ERROR and "points" in r.text and "another sensor" in r.text
+
+
+def test_explain_reads_medians():
+    prof = QuantityProfile.of(np.linspace(0, 2, 101))
+    assert explain("detector score", prof, [10.0, 10.0]) == (
+        "detector score median 10, training median 1 (10x): another detector?")
+    with pytest.raises(ValueError):
+        DriftMonitor(DomainProfile(), warn=0.6, error=0.5)
