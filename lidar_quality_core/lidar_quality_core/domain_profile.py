@@ -16,7 +16,9 @@ and subtracts that expectation, so that in-domain windows score near 0 whatever 
 size. Conventional reading: < 0.1 no shift, 0.1-0.25 moderate, > 0.25 major.
 
 :class:`DriftMonitor` keeps the last ``window`` frames' values per quantity; after each
-frame, ``score`` is the largest PSI over the quantities with at least ``min_values``
+frame, ``score`` is the largest PSI beyond the quantity's ``spread`` (a window holds a
+scene or two, and one training sequence's values already differ from the mix of all
+sequences by that much: positions, sizes) over the quantities with at least ``min_values``
 values in the window (a per-frame statistic needs that many frames; a per-box feature a
 frame or two), the most drifted ones named in words by :func:`explain`, and ``level``
 OK / WARN / ERROR from two thresholds. The default thresholds are the conventional PSI
@@ -32,13 +34,19 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
+from .parameters import param
+
 __all__ = ["LEVELS", "EPS", "VALUES_PER_BIN", "QuantityProfile", "DomainProfile", "psi",
-           "DriftMonitor", "DriftReport", "explain"]
+           "DriftMonitor", "DriftReport", "explain", "ACTIONS", "DriftParameters",
+           "DomainCheck", "DomainVerdict"]
 
 LEVELS = tuple(np.linspace(0.0, 1.0, 21).round(4).tolist())   # 0, 5, ..., 100 %
 EPS = 1e-4
 VALUES_PER_BIN = 5
 OK, WARN, ERROR = 0, 1, 2
+LEVEL_NAMES = ("OK", "WARN", "ERROR")
+#: what an out-of-domain frame (drift at the ERROR level) gets
+ACTIONS = ("flag", "passthrough")
 #: what a drifted quantity most likely means (quantity name -> hint), for the log line
 HINTS = {"intensity": "intensity scale?", "reflectance": "intensity scale?",
          "score": "another detector?", "points": "another sensor or cropping?",
@@ -47,20 +55,34 @@ HINTS = {"intensity": "intensity scale?", "reflectance": "intensity scale?",
 
 @dataclass(frozen=True)
 class QuantityProfile:
-    """Quantiles at ``LEVELS`` of a quantity's finite training values, their count and
-    the fraction of values that were missing (NaN)."""
+    """Quantiles at ``LEVELS`` of a quantity's finite training values, their count, the
+    fraction of values that were missing (NaN) and ``spread``: the largest PSI of one
+    training sequence against the whole (how far one scene's values already are from the
+    mix of all; 0 without sequences)."""
 
     quantiles: tuple
     count: int
     missing: float = 0.0
+    spread: float = 0.0
 
     @classmethod
-    def of(cls, values) -> "QuantityProfile":
+    def of(cls, values, groups=None, *, min_values: int = 30) -> "QuantityProfile":
+        """The profile of ``values``; ``groups`` (one label per value, e.g. the sequence)
+        give the ``spread`` over the groups with at least ``min_values`` values."""
         v = np.asarray(values, np.float64).reshape(-1)
         finite = v[np.isfinite(v)]
         missing = 1.0 - len(finite) / len(v) if len(v) else 0.0
         q = np.quantile(finite, LEVELS) if len(finite) else np.full(len(LEVELS), np.nan)
-        return cls(tuple(float(x) for x in q), int(len(finite)), float(missing))
+        prof = cls(tuple(float(x) for x in q), int(len(finite)), float(missing))
+        if groups is None or not len(finite):
+            return prof
+        g = np.asarray(groups).reshape(-1)
+        if len(g) != len(v):
+            raise ValueError(f"{len(g)} group labels for {len(v)} values")
+        spread = [psi(prof, v[g == k]) for k in np.unique(g) if (g == k).sum() >= min_values]
+        spread = [x for x in spread if np.isfinite(x)]
+        return cls(prof.quantiles, prof.count, prof.missing,
+                   float(max(spread)) if spread else 0.0)
 
     @property
     def median(self) -> float:
@@ -68,14 +90,15 @@ class QuantityProfile:
 
     def to_json(self) -> dict:
         return {"quantiles": list(self.quantiles), "count": self.count,
-                "missing": self.missing}
+                "missing": self.missing, "spread": self.spread}
 
     @classmethod
     def from_json(cls, d: Mapping) -> "QuantityProfile":
         q = tuple(float(x) if x is not None else math.nan for x in d["quantiles"])
         if len(q) != len(LEVELS):
             raise ValueError(f"a profile has {len(LEVELS)} quantiles, got {len(q)}")
-        return cls(q, int(d["count"]), float(d.get("missing", 0.0)))
+        return cls(q, int(d["count"]), float(d.get("missing", 0.0)),
+                   float(d.get("spread") or 0.0))
 
 
 @dataclass(frozen=True)
@@ -85,9 +108,13 @@ class DomainProfile:
     quantities: dict = field(default_factory=dict)
 
     @classmethod
-    def of(cls, columns: Mapping[str, Iterable]) -> "DomainProfile":
-        """The profile of ``{name: training values}``."""
-        return cls({name: QuantityProfile.of(v) for name, v in columns.items()})
+    def of(cls, columns: Mapping[str, Iterable],
+           groups: Mapping[str, Iterable] | None = None) -> "DomainProfile":
+        """The profile of ``{name: training values}``; ``groups``: ``{name: a sequence
+        label per value}`` for the quantities whose ``spread`` is to be measured."""
+        groups = groups or {}
+        return cls({name: QuantityProfile.of(v, groups.get(name))
+                    for name, v in columns.items()})
 
     def to_json(self) -> dict:
         return {"version": 1, "levels": list(LEVELS),
@@ -194,7 +221,8 @@ class DriftMonitor:
             live[name] = np.concatenate(parts)
             if len(live[name]) < self.min_values:
                 continue       # too few values to tell a shift from chance
-            s = psi(prof, live[name])
+            # beyond what one training sequence already differs from the mix of all
+            s = psi(prof, live[name]) - prof.spread
             if np.isfinite(s):
                 scores[name] = s
         ranked = sorted(scores.items(), key=lambda kv: -kv[1])
@@ -203,3 +231,70 @@ class DriftMonitor:
         drifted = [(k, round(v, 4)) for k, v in ranked[:self.top] if v >= self.warn]
         text = "; ".join(explain(k, self.profile.quantities[k], live[k]) for k, _ in drifted)
         return DriftReport(float(score), level, drifted, text, len(self._frames))
+
+
+# ------------------------------------------------------------------ in the nodes
+@dataclass(frozen=True)
+class DriftParameters:
+    """The drift monitor's parameters, common to lmd_node, lms_node and mimo_node (a
+    ``parameters.group`` of each node's parameters)."""
+
+    drift_window: int = param(
+        50, "Frames in the rolling window the drift score is computed over (the meta "
+        "models' training-data profile against the live features and inputs).", min_value=1)
+    drift_warn: float = param(
+        0.25, "Drift score (bias-corrected PSI of the most drifted quantity) from which "
+        "/diagnostics reports WARN and a throttled warning names the quantities.",
+        min_value=0.0)
+    drift_error: float = param(
+        0.5, "Drift score from which /diagnostics reports ERROR: the frame is out of the "
+        "models' domain (drift_action).", min_value=0.0)
+    drift_action: str = param(
+        "flag", "What an out-of-domain frame gets: flag (annotated as always, flagged in "
+        "/diagnostics) or passthrough (the detector's own score as the confidence and NaN "
+        "predicted IoU; LMS, without a detector score: NaN for both).", choices=ACTIONS)
+
+    def validate(self) -> None:
+        if self.drift_error < self.drift_warn:
+            raise ValueError(f"drift_error = {self.drift_error} is below drift_warn = "
+                             f"{self.drift_warn}")
+
+
+@dataclass
+class DomainVerdict:
+    """One frame's drift for a processor's outputs: diagnostics ``values``, the warning
+    text (``issue``, None when quiet), ``error`` (level ERROR) and ``passthrough`` (the
+    frame's confidences are to be replaced, ``drift_action``)."""
+
+    values: dict
+    issue: str | None = None
+    error: bool = False
+    passthrough: bool = False
+
+
+class DomainCheck:
+    """A processor's drift monitor over its models' profile (None: the models record no
+    profile, and each frame says so in its values)."""
+
+    def __init__(self, profile: DomainProfile | None, params: DriftParameters | None = None):
+        p = params or DriftParameters()
+        p.validate()
+        self.action = p.drift_action
+        self.monitor = None if profile is None else DriftMonitor(
+            profile, window=p.drift_window, warn=p.drift_warn, error=p.drift_error)
+
+    def __call__(self, quantities: Mapping[str, object]) -> DomainVerdict:
+        if self.monitor is None:
+            return DomainVerdict({"drift": "off: the models record no training-data profile "
+                                           "(trained before profiles; retrain to monitor)"})
+        r = self.monitor.add(quantities)
+        values = {"drift.score": round(r.score, 3), "drift.level": LEVEL_NAMES[r.level],
+                  "drift.window_frames": r.frames}
+        if r.drifted:
+            values["drift.quantities"] = ", ".join(k for k, _ in r.drifted)
+        issue = None
+        if r.level >= WARN:
+            issue = (f"inputs unlike the models' training data (drift {r.score:.2f} over "
+                     f"{r.frames} frames): {r.text}")
+        return DomainVerdict(values, issue, r.level == ERROR,
+                             r.level == ERROR and self.action == "passthrough")

@@ -580,16 +580,21 @@ def save_pair(out_dir, prefix: str, classifier, regressor, feature_names: Sequen
     return cpath, rpath
 
 
-def training_profile(X, feature_names: Sequence[str], extra: dict | None = None) -> dict:
+def training_profile(X, feature_names: Sequence[str], extra: dict | None = None, *,
+                     groups=None, extra_groups: dict | None = None) -> dict:
     """The domain profile (``domain_profile.DomainProfile``, JSON) of a training set: every
     feature column by name, plus ``extra`` quantities (``{name: values}``, e.g. the
-    detector's scores, points per frame)."""
+    detector's scores, points per frame). ``groups`` (the sequence of each row of ``X``)
+    and ``extra_groups`` (``{name: the sequence of each value}``) give each quantity's
+    spread between sequences."""
     from .domain_profile import DomainProfile
 
     X = np.asarray(X, np.float64)
     cols = {n: X[:, j] for j, n in enumerate(feature_names)}
     cols.update(extra or {})
-    return DomainProfile.of(cols).to_json()
+    by = {n: groups for n in feature_names} if groups is not None else {}
+    by.update(extra_groups or {})
+    return DomainProfile.of(cols, by).to_json()
 
 
 def model_path_param(role: str, target: str, shipped: str):

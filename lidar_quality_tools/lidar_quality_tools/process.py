@@ -170,7 +170,7 @@ def _lmd(p: dict, topics: dict) -> Runner:
                         transform_inputs=c.transform_inputs,
                         transform_tolerance=c.transform_tolerance,
                         thresholds=thresholds_from(c.min_confidence, c.class_min_confidence,
-                                                   c.range_min_confidence))
+                                                   c.range_min_confidence), drift=c.drift)
     mode = c.settings.proposal_mode
     keys = ["points"] + (["detections"] if mode != "exact" else []) + (
         ["proposals"] if mode != "none" else [])
@@ -183,7 +183,8 @@ def _lms(p: dict, topics: dict) -> Runner:
     from lms_ros.pipeline import LmsProcessor
 
     c = node_config("lms", p)
-    proc = LmsProcessor(c.settings, _models("lms", c), all_fields=c.output_all_fields)
+    proc = LmsProcessor(c.settings, _models("lms", c), all_fields=c.output_all_fields,
+                        drift=c.drift)
     # the segmentation cloud carries points and probabilities; separately: /lidar/points
     keys = ("points", "segmentation") if c.separate_probabilities else ("segmentation",)
     return Runner("lms", {k: topic_of(k, topics) for k in keys}, keys,
@@ -203,7 +204,7 @@ def _mimo(p: dict, names: dict) -> Runner:
                          transform_inputs=c.transform_inputs,
                          transform_tolerance=c.transform_tolerance,
                          thresholds=thresholds_from(c.min_confidence, c.class_min_confidence,
-                                                    c.range_min_confidence))
+                                                    c.range_min_confidence), drift=c.drift)
     K = s.num_heads
     topics = {f"head_{k}": topic_of(f"head_{k}", names) for k in range(K)}
     if c.use_variances:

@@ -87,7 +87,8 @@ class LmdNode(QualityNode):
                                       existence_fallback=p.existence_fallback,
                                       thresholds=thresholds_from(p.min_confidence,
                                                                  p.class_min_confidence,
-                                                                 p.range_min_confidence))
+                                                                 p.range_min_confidence),
+                                      drift=p.drift)
 
         mode = p.settings.proposal_mode
         self.autoware = p.input_type == "autoware"

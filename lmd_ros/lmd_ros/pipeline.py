@@ -62,6 +62,7 @@ from lidar_quality_core.autoware_cdr import DecodedObjects, encode_detected_obje
 from lidar_quality_core.autoware_objects import (class_map_param, existence_fallback_param,
                                                  input_type_param)
 from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt_issue
+from lidar_quality_core.domain_profile import DomainCheck, DriftParameters
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
                                               rescaled_scores)
 from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
@@ -151,6 +152,7 @@ class LmdParameters:
         "dropped (counted as no_transform, with a warning naming the frames). false: compute "
         "as if the frames were equal (warning frame_id).")
     transform_tolerance: float = transform_tolerance_param()
+    drift: DriftParameters = group(DriftParameters())
     classifier_path: str = model_path_param(
         "classifier", "confidence", "models/lmd/lmd_<proposal_mode>_classifier.joblib")
     regressor_path: str = model_path_param(
@@ -446,7 +448,8 @@ class LmdProcessor:
     def __init__(self, settings: LmdSettings, models, *, min_confidence: float = 0.0,
                  transforms=None, transform_inputs: bool = True,
                  transform_tolerance: float = 0.05, existence_fallback: float = -1.0,
-                 thresholds: ConfidenceThresholds | None = None):
+                 thresholds: ConfidenceThresholds | None = None,
+                 drift: DriftParameters | None = None):
         settings.validate()
         if tuple(models.feature_names) != settings.feature_names():
             raise ValueError("models were loaded for another feature schema than the settings'")
@@ -460,6 +463,8 @@ class LmdProcessor:
         self.existence_fallback = float(existence_fallback)
         self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
         self._padding = PaddingNote()
+        #: live inputs against the models' training data (``domain_profile``)
+        self.domain = DomainCheck(getattr(models, "domain_profile", None), drift)
         self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
         #: for whoever builds the buffer (process_bag: one per bag)
         self.transform_tolerance = float(transform_tolerance)
@@ -492,6 +497,10 @@ class LmdProcessor:
                                intensity=self.intensity)
         conf, iou = self.models.predict(frame.features)
         n = len(frame.detections)
+        verdict = self.domain(frame_quantities(frame, self.settings.feature_names()))
+        if verdict.passthrough:     # out of the models' domain: the detector's own score
+            conf = np.where(frame.valid, frame.detections.scores, np.nan)
+            iou = np.full(n, np.nan)
         kept, removed = replace(self.thresholds, floor=self.min_confidence).keep(
             conf, frame.detections.labels, frame.detections.boxes)
         header = frame.header
@@ -536,11 +545,14 @@ class LmdProcessor:
                     else "; ".join(frame_notes))
         if mismatch:
             issues["frame_id"] = mismatch
+        if verdict.issue:
+            issues["domain_drift"] = verdict.issue
         return LmdOutputs(frame, conf, iou, kept, det_msg, quality, mk, issues,
                           ([self.intensity.note] if self.intensity.note else [])
                           + self._padding(frame.n_padding, frame.points_in),
-                          {"intensity_scale": self.intensity.decided}, fallback=fallback,
-                          removed=removed)
+                          {"intensity_scale": self.intensity.decided, **verdict.values},
+                          frozenset({"domain_drift"}) if verdict.error else frozenset(),
+                          fallback=fallback, removed=removed)
 
     def markers(self, frame: LmdFrame, conf, iou, kept):
         """Boxes of the published detections coloured by confidence, labelled
@@ -552,6 +564,18 @@ class LmdProcessor:
         texts = [f"{labels[i]} c={conf[i]:.2f} iou={iou[i]:.2f}" for i in idx.tolist()]
         return box_markers(frame.boxes_header or frame.header, frame.detections.boxes[idx],
                            conf[idx], texts, ns="lmd")
+
+
+def frame_quantities(frame: LmdFrame, feature_names) -> dict:
+    """What the drift monitor compares with the training profile (``meta_model``'s
+    ``training_profile`` as ``lmd-train`` records it): every feature of the valid boxes,
+    their detector scores, boxes and points of the frame."""
+    v = frame.valid
+    X = frame.features[v]
+    out = {name: X[:, j] for j, name in enumerate(feature_names)}
+    out.update({"detector score": frame.detections.scores[v],
+                "boxes per frame": [int(v.sum())], "points per frame": [frame.n_points]})
+    return out
 
 
 def frame_id_mismatch(cloud, detections, proposals) -> str | None:

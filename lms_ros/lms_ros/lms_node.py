@@ -57,7 +57,7 @@ class LmsNode(QualityNode):
         self.settings = p.settings.resolved()
         self.models = load_models(p, warn=self.get_logger().warning)
         self.processor = LmsProcessor(self.settings, self.models,
-                                      all_fields=p.output_all_fields)
+                                      all_fields=p.output_all_fields, drift=p.drift)
 
         self.create_output(PointCloud2, "output/points", output_qos(5))
         self.create_output(SegmentQualityArray, "output/segments")

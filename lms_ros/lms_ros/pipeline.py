@@ -92,6 +92,7 @@ from pathlib import Path
 
 import numpy as np
 
+from lidar_quality_core.domain_profile import DomainCheck, DriftParameters
 from lidar_quality_core.conventions import probability_field
 from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
@@ -576,6 +577,7 @@ class LmsParameters:
     publish_markers: bool = param(
         True, "Publish output/markers (segment centroids coloured by confidence; built only "
         "while someone subscribes).")
+    drift: DriftParameters = group(DriftParameters())
     classifier_path: str = model_path_param(
         "classifier", "confidence", "models/lms/lms_classifier.joblib")
     regressor_path: str = model_path_param(
@@ -656,6 +658,7 @@ class LmsOutputs:
     accounting: dict = field(default_factory=dict)   # point_accounting
     notes: list = field(default_factory=list)        # decisions to log once (info)
     intensity_scale: str | None = None               # the scale the metrics read
+    drift: dict = field(default_factory=dict)        # the drift check's values
 
     @property
     def messages(self) -> dict:
@@ -684,7 +687,8 @@ class LmsOutputs:
         return {"points.unprojected_ratio": a["unprojected_ratio"],
                 "points.occluded_ratio": a["occluded_ratio"],
                 "points.no_pixel_ratio": a["no_pixel_ratio"],
-                **({"intensity_scale": self.intensity_scale} if self.intensity_scale else {})}
+                **({"intensity_scale": self.intensity_scale} if self.intensity_scale else {}),
+                **self.drift}
 
 
 def point_accounting(inp: LmsInput, res: SegmentResult) -> dict:
@@ -708,10 +712,12 @@ class LmsProcessor:
     """The node's frame work without ROS: decode, metrics, meta models, output messages.
 
     ``models``: a ``MetaModels`` loaded with ``settings.metric_names()``; ``all_fields``:
-    ``output/points`` repeats every input field (``output_all_fields``).
+    ``output/points`` repeats every input field (``output_all_fields``); ``drift``: the
+    drift monitor's parameters (``domain_profile``).
     """
 
-    def __init__(self, settings: LmsSettings, models, *, all_fields: bool = False):
+    def __init__(self, settings: LmsSettings, models, *, all_fields: bool = False,
+                 drift: DriftParameters | None = None):
         settings.validate()
         settings = settings.resolved()
         if tuple(models.feature_names) != settings.metric_names():
@@ -726,6 +732,8 @@ class LmsProcessor:
         self._padding = PaddingNote()
         #: per-beam elevations estimated from the clouds, kept for the node's lifetime
         self.beam_table = beams.BeamTable(MAX_CHANNELS)
+        #: live metrics against the models' training data (``domain_profile``)
+        self.domain = DomainCheck(getattr(models, "domain_profile", None), drift)
         from lidar_quality_msgs.msg import SegmentQuality, SegmentQualityArray
         self._Quality, self._QualityArray = SegmentQuality, SegmentQualityArray
 
@@ -738,6 +746,9 @@ class LmsProcessor:
         self.intensity.note = None
         res = frame_metrics(inp, s, self.intensity)
         conf_k, iou_k = self.models.predict(res.features)
+        verdict = self.domain(dict(zip(res.names, res.features.T)))
+        if verdict.passthrough:     # out of the models' domain, and no detector score
+            conf_k, iou_k = np.full_like(conf_k, np.nan), np.full_like(iou_k, np.nan)
         ns = res.n_segments
         conf = np.full(ns, np.nan)
         iou = np.full(ns, np.nan)
@@ -785,10 +796,14 @@ class LmsProcessor:
                 probabilities_msg.header.frame_id != points_msg.header.frame_id):
             issues["frame_id"] = (f"input/points frame_id {points_msg.header.frame_id!r} != "
                                   f"input/probabilities {probabilities_msg.header.frame_id!r}")
+        if verdict.issue:
+            issues["domain_drift"] = verdict.issue
+            if verdict.error:
+                errors.add("domain_drift")
         return LmsOutputs(inp, res, conf, iou, cloud, segs, mk, issues, frozenset(errors), acc,
                           ([self.intensity.note] if self.intensity.note else [])
                           + self._padding(inp.n_padding, len(inp)),
-                          self.intensity.decided)
+                          self.intensity.decided, verdict.values)
 
     @staticmethod
     def output_cloud(header, inp: LmsInput, res: SegmentResult, conf, iou, *,

@@ -82,7 +82,8 @@ class MimoNode(QualityNode):
                                        autoware=self.autoware,
                                        thresholds=thresholds_from(p.min_confidence,
                                                                   p.class_min_confidence,
-                                                                  p.range_min_confidence))
+                                                                  p.range_min_confidence),
+                                       drift=p.drift)
 
         K = self.settings.num_heads
         if self.autoware is not None:

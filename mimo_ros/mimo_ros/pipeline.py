@@ -59,6 +59,7 @@ from lidar_quality_core.box_variance_cdr import DecodedVariances
 from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
                                       detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
+from lidar_quality_core.domain_profile import DomainCheck, DomainVerdict, DriftParameters
 from lidar_quality_core.frame import FrameRejected
 from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
@@ -178,6 +179,7 @@ class MimoParameters:
         "(counted as no_transform, with a warning naming the frames). false: merge as if "
         "the frames were equal (warning).")
     transform_tolerance: float = transform_tolerance_param()
+    drift: DriftParameters = group(DriftParameters())
     output_scores: str = param(
         "confidence", "Hypothesis scores of output/detections: 'confidence' (the merged class "
         "distribution scaled so that the top score is the meta confidence) or 'merged' (the "
@@ -495,6 +497,7 @@ class MimoOutput:
     fallback: int | None = None   # DetectedObjects: objects given the fallback existence
     kept: np.ndarray | None = None  # (C,) published on the detections output (thresholds)
     removed: dict = field(default_factory=dict)  # "removed.<class>.<bin>" -> count
+    verdict: DomainVerdict | None = None         # the drift check's (None: not checked)
 
 
 def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
@@ -584,13 +587,20 @@ def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, mode
                   serialized: bool = False, transforms: dict | None = None,
                   intensity: IntensityScale | None = None,
                   autoware: AutowareOutput | None = None,
-                  thresholds: ConfidenceThresholds | None = None) -> MimoOutput:
+                  thresholds: ConfidenceThresholds | None = None,
+                  domain: DomainCheck | None = None) -> MimoOutput:
     """The node's work for one frame, decode to output messages: ``frame_features``,
-    ``models.predict`` (a ``MetaModels``), ``thresholds`` (what is published),
-    ``output_messages`` (``serialized``: the detections as bytes)."""
+    ``models.predict`` (a ``MetaModels``), the drift check (``domain``; its ``passthrough``
+    puts the merged scores in place of the confidences), ``thresholds`` (what is
+    published), ``output_messages`` (``serialized``: the detections as bytes)."""
     frame = frame_features(head_msgs, variance_msgs, settings, cloud_msg,
                            transforms=transforms, intensity=intensity)
     conf, iou = models.predict(frame.features)
+    verdict = None
+    if domain is not None:
+        verdict = domain(frame_quantities(frame, settings.feature_names()))
+        if verdict.passthrough:
+            conf, iou = frame.merge.scores.astype(np.float64), np.full(len(conf), np.nan)
     kept, removed = (thresholds or ConfidenceThresholds()).keep(
         conf, frame.class_labels(), frame.merge.boxes)
     dets, unc = output_messages(header, frame, conf, iou, scores=scores,
@@ -600,7 +610,15 @@ def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, mode
     n_fallback = None
     if autoware is not None:
         (dets, n_fallback) = dets
-    return MimoOutput(frame, conf, iou, dets, unc, n_fallback, kept, dict(removed))
+    return MimoOutput(frame, conf, iou, dets, unc, n_fallback, kept, dict(removed), verdict)
+
+
+def frame_quantities(frame: MimoFrame, feature_names) -> dict:
+    """What the drift monitor compares with the training profile (as ``mimo-train``
+    records it): every feature of the merged detections, their scores, their number."""
+    out = {name: frame.features[:, j] for j, name in enumerate(feature_names)}
+    out.update({"detector score": frame.merge.scores, "boxes per frame": [len(frame)]})
+    return out
 
 
 class NoHeadError(FrameRejected):
@@ -648,7 +666,8 @@ class MimoProcessor:
     def __init__(self, settings: MimoSettings, models, *, scores: str = "confidence",
                  transforms=None, transform_inputs: bool = True,
                  transform_tolerance: float = 0.05, autoware: AutowareOutput | None = None,
-                 thresholds: ConfidenceThresholds | None = None):
+                 thresholds: ConfidenceThresholds | None = None,
+                 drift: DriftParameters | None = None):
         settings.validate()
         if scores not in OUTPUT_SCORES:
             raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
@@ -661,6 +680,8 @@ class MimoProcessor:
         self.autoware = autoware
         #: what is published on the detections output (min_confidence, per class / range)
         self.thresholds = thresholds
+        #: live inputs against the models' training data (``domain_profile``)
+        self.domain = DomainCheck(getattr(models, "domain_profile", None), drift)
 
     def process(self, heads: Sequence, variances: Sequence | None = None, cloud=None, *,
                 markers: bool = False) -> MimoFrameOutputs:
@@ -701,7 +722,7 @@ class MimoProcessor:
         out = process_frame(header, list(heads), variances, s, self.models, cloud_msg=xyz,
                             scores=self.scores, serialized=True, transforms=moved,
                             intensity=self.intensity, autoware=self.autoware,
-                            thresholds=self.thresholds)
+                            thresholds=self.thresholds, domain=self.domain)
         if out.frame.issues:
             issues["heads"] = "; ".join(out.frame.issues)
         mk = None
@@ -719,8 +740,13 @@ class MimoProcessor:
                   **({} if out.fallback is None else {"detections.fallback": out.fallback}),
                   **out.removed}
         values = {"intensity_scale": self.intensity.decided} if s.use_points else {}
+        values.update(out.verdict.values)
+        if out.verdict.issue:
+            issues["domain_drift"] = out.verdict.issue
         return MimoFrameOutputs(out, issues, counts, mk,
-                                [self.intensity.note] if self.intensity.note else [], values)
+                                [self.intensity.note] if self.intensity.note else [], values,
+                                frozenset({"domain_drift"}) if out.verdict.error else
+                                frozenset())
 
 
 # ------------------------------------------------------------------ head fallback

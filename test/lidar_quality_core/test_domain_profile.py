@@ -86,3 +86,27 @@ def test_explain_reads_medians():
         "detector score median 10, training median 1 (10x): another detector?")
     with pytest.raises(ValueError):
         DriftMonitor(DomainProfile(), warn=0.6, error=0.5)
+
+
+def test_spread_between_sequences_is_not_drift():
+    """A quantity that differs by scene (e.g. where the objects are): one training
+    sequence's values already differ from the mix, so a window of one new scene is not a
+    shift; a shift well beyond that still is."""
+    rng = np.random.default_rng(6)
+    centres = rng.uniform(-20, 20, 12)
+    values = np.concatenate([rng.normal(c, 2.0, 300) for c in centres])
+    groups = np.repeat(np.arange(12), 300)
+    prof = DomainProfile.of({"mean_y": values}, {"mean_y": groups})
+    assert prof.quantities["mean_y"].spread > 0.5
+    assert DomainProfile.of({"mean_y": values}).quantities["mean_y"].spread == 0.0
+    mon = DriftMonitor(prof, window=5)
+    for _ in range(5):                                    # a new scene of the same kind
+        r = mon.add({"mean_y": rng.normal(rng.uniform(-15, 15), 2.0, 40)})
+    assert r.level == OK, r
+    for _ in range(5):                                    # far outside every scene
+        r = mon.add({"mean_y": rng.normal(80.0, 2.0, 40)})
+    assert r.level == ERROR
+    back = DomainProfile.from_json(json.loads(json.dumps(prof.to_json())))
+    assert back == prof
+    with pytest.raises(ValueError, match="group labels"):
+        DomainProfile.of({"a": [1.0, 2.0]}, {"a": [0]})

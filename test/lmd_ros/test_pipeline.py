@@ -565,8 +565,8 @@ def test_intensity_scale_auto_gives_the_same_outputs_in_both_scales(threshold_mo
     out = proc.process(cloud255, copy.deepcopy(dets), copy.deepcopy(props))
     np.testing.assert_allclose(out.confidence, ref.confidence, atol=1e-5)
     np.testing.assert_allclose(out.predicted_iou, ref.predicted_iou, atol=1e-5)
-    assert out.values == {"intensity_scale": "byte"} and "0..255" in out.notes[0]
-    assert ref.values == {"intensity_scale": "unit"} and "[0, 1]" in ref.notes[0]
+    assert out.values["intensity_scale"] == "byte" and "0..255" in out.notes[0]
+    assert ref.values["intensity_scale"] == "unit" and "[0, 1]" in ref.notes[0]
     assert proc.process(cloud255, copy.deepcopy(dets), copy.deepcopy(props)).notes == []
     # the same scan read as given ('unit'): the reflectance features are 255x off
     raw = LmdProcessor(replace(s, intensity_scale="unit"), models).process(
@@ -600,3 +600,57 @@ def test_padding_points_are_left_out_and_counted(threshold_models):
     assert not any("padding" in n for n in proc.process(
         padded, copy.deepcopy(dets), copy.deepcopy(props)).notes)
     assert not any("padding" in n for n in ref.notes)
+
+
+# --------------------------------------------------------------------------- domain drift
+def shifted(f, factor):
+    """Frame ``f`` as another detector would score it: every score times ``factor``."""
+    return replace(f, det_scores=f.det_scores * factor, prop_scores=f.prop_scores * factor)
+
+
+def test_drift_check_flags_frames_unlike_the_training_data(tmp_path):
+    from lidar_quality_core.domain_profile import DriftParameters
+
+    settings = LmdSettings(proposal_mode="none")
+    models = MetaModels(*train_models(tmp_path, settings, n_frames=8, profile=True),
+                        settings.feature_names())
+    assert models.domain_profile is not None
+    frames = [synthetic.synthetic_frame(n_points=20_000, n_objects=15, n_proposals=150,
+                                        seed=700 + k) for k in range(8)]
+    proc = LmdProcessor(settings, models, drift=DriftParameters(drift_window=4))
+    for k, f in enumerate(frames[:4]):                    # the training domain: quiet
+        cloud, dets, _ = frame_messages(f, k + 1)
+        out = proc.process(cloud, dets, None)
+        assert out.values["drift.level"] == "OK", out.values
+        assert "domain_drift" not in out.issues
+    levels = []
+    for k, f in enumerate(frames[4:]):                    # another detector's scores
+        cloud, dets, _ = frame_messages(shifted(f, 0.3), k + 5)
+        out = proc.process(cloud, dets, None)
+        levels.append(out.values["drift.level"])
+    assert levels[-1] == "ERROR" and "domain_drift" in out.errors
+    assert "detector score" in out.issues["domain_drift"]
+    assert "another detector?" in out.issues["domain_drift"]
+    assert np.isfinite(out.confidence[out.frame.valid]).all()   # flag: annotated as always
+
+    passthrough = LmdProcessor(settings, models, drift=DriftParameters(
+        drift_window=2, drift_action="passthrough"))
+    for k, f in enumerate(frames[4:]):
+        cloud, dets, _ = frame_messages(shifted(f, 0.3), k + 5)
+        out = passthrough.process(cloud, dets, None)
+    v = out.frame.valid
+    assert out.values["drift.level"] == "ERROR"
+    assert np.array_equal(out.confidence[v], out.frame.detections.scores[v])
+    assert np.isnan(out.predicted_iou).all()
+
+
+def test_models_without_a_profile_say_the_drift_check_is_off(tmp_path):
+    settings = LmdSettings(proposal_mode="none")
+    models = MetaModels(*train_models(tmp_path, settings, n_frames=2),
+                        settings.feature_names())
+    assert models.domain_profile is None
+    f = synthetic.synthetic_frame(n_points=5_000, n_objects=5, n_proposals=40, seed=3)
+    cloud, dets, _ = frame_messages(f, 1)
+    out = LmdProcessor(settings, models).process(cloud, dets, None)
+    assert out.values["drift"].startswith("off: the models record no training-data")
+    assert "domain_drift" not in out.issues

@@ -691,3 +691,49 @@ def test_intensity_scale_auto_reads_both_scales_alike(frames, models):
         cloud(xyz, p, intensity=inten255, ring=f.ring))
     col = list(raw.result.names).index("mean_i")
     assert np.nanmax(np.abs(raw.result.features[:, col] - ref.result.features[:, col])) > 1.0
+
+
+# -- domain drift -------------------------------------------------------------------------
+def test_drift_check_flags_a_less_certain_segmenter(tmp_path):
+    """Models recording the profile of their training metrics: frames of the same
+    segmenter are quiet, a segmenter with three times the logit noise is out of the domain
+    (ERROR, metrics named); passthrough leaves its segments unscored (NaN)."""
+    from lidar_quality_core.domain_profile import DriftParameters
+    from lms_ros.pipeline import decode, frame_metrics
+    from lms_scans import noisy_probs as probs_of
+
+    s = _settings()
+    names = s.metric_names()
+    train = [f for seed in (21, 23, 24, 25, 26) for f in scans(seed, 2)]   # five scenes
+    rows = [frame_metrics(decode(frame_cloud(f, probs_of(f.xyz, f.ring, f.semantic, k)), s),
+                          s).features for k, f in enumerate(train)]
+    X = np.vstack(rows)
+    scene = np.repeat(np.arange(len(rows)) // 2, [len(r) for r in rows])
+    y = (np.arange(len(X)) % 2).astype(float)
+    c, r = meta_model.save_pair(
+        tmp_path, "lms", meta_model.fit_estimator("linear", "classification", X, y),
+        meta_model.fit_estimator("linear", "regression", X, y), names,
+        domain_profile=meta_model.training_profile(X, names, groups=scene))
+    models = meta_model.MetaModels(c, r, names)
+    live = scans(22, 4)
+    # thresholds above the default: a profile of ten frames knows the scenes' spread poorly
+    drift = dict(drift_window=2, drift_warn=0.5, drift_error=1.0)
+    proc = LmsProcessor(s, models, drift=DriftParameters(**drift))
+    for k, f in enumerate(live[:2]):
+        out = proc.process(frame_cloud(f, probs_of(f.xyz, f.ring, f.semantic, 50 + k)))
+        assert out.values["drift.level"] == "OK", (out.values["drift.score"], out.values.get("drift.quantities"))
+    for k, f in enumerate(live[2:]):
+        out = proc.process(frame_cloud(f, probs_of(f.xyz, f.ring, f.semantic, 60 + k,
+                                                   noise=3.6)))
+    assert out.values["drift.level"] == "ERROR" and "domain_drift" in out.errors, out.values
+    assert out.issues["domain_drift"].startswith("inputs unlike the models' training data")
+    assert np.isfinite(out.confidence[out.result.kept_ids]).all()     # flag: annotated
+
+    passthrough = LmsProcessor(s, models, drift=DriftParameters(**drift,
+                                                                drift_action="passthrough"))
+    for k, f in enumerate(live[2:]):
+        out = passthrough.process(frame_cloud(f, probs_of(f.xyz, f.ring, f.semantic, 60 + k,
+                                                          noise=3.6)))
+    assert out.values["drift.level"] == "ERROR"
+    assert np.isnan(out.confidence).all() and np.isnan(out.predicted_iou).all()
+    assert len(out.segments.segments) == out.result.n_segments       # every segment still out

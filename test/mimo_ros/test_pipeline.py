@@ -13,6 +13,7 @@ from mimo_ros.pipeline import (DEFAULT_CLASS_NAMES, POINT_FEATURES, STAT_FEATURE
                                process_frame, MimoProcessor,
                                NoHeadError)
 from reference_perception.messages import box_variance_array, detection_array
+from rclpy.serialization import deserialize_message, serialize_message
 from std_msgs.msg import Header
 
 NAMES = DEFAULT_CLASS_NAMES
@@ -574,3 +575,57 @@ def test_processor_heads_and_cloud_in_other_frames(models, tmp_path):
     np.testing.assert_allclose(out.out.confidence, ref.out.confidence, atol=1e-6)
     with pytest.raises(NoTransformError, match="input/points: no transform from 'base_link'"):
         MimoProcessor(sp, pm, transforms=TransformBuffer()).process(heads, None, cloud_b)
+
+
+# --------------------------------------------------------------------------- domain drift
+def test_drift_check_flags_another_detectors_scores(tmp_path):
+    """Models recording the profile of their training frames: frames like them are quiet,
+    heads scoring every box at 40 % of that are out of the domain (ERROR, the score named);
+    passthrough then publishes the merged scores as the confidences."""
+    from lidar_quality_core.domain_profile import DriftParameters
+    from lidar_quality_core.meta_model import training_profile
+    from mimo_data import head_frames
+    from mimo_ros.pipeline import MimoProcessor, frame_quantities
+
+    s = MimoSettings()
+    names = s.feature_names()
+    train = [frame_features(heads, variances, s) for _, heads, variances, _ in
+             head_frames(n_frames=10, seed=1)]
+    X = np.vstack([f.features for f in train])
+    prof = training_profile(X, names, {
+        "detector score": np.concatenate([f.merge.scores for f in train]),
+        "boxes per frame": [len(f) for f in train]})
+    assert set(prof["quantities"]) == set(frame_quantities(train[0], names))
+    y = (np.arange(len(X)) % 2).astype(float)
+    c, r = save_pair(tmp_path, "mimo", fit_estimator("linear", "classification", X, y),
+                     fit_estimator("linear", "regression", X, y), names, domain_profile=prof)
+    models = MetaModels(c, r, names)
+
+    def weaker(heads):
+        out = []
+        for h in heads:
+            h = deserialize_message(serialize_message(h), type(h))
+            for d in h.detections:
+                for res in d.results:
+                    res.hypothesis.score *= 0.4
+            out.append(h)
+        return out
+
+    live = head_frames(n_frames=16, seed=2)
+    # weaker scores leave fewer boxes: 8 frames hold the 30 values a score needs
+    proc = MimoProcessor(s, models, drift=DriftParameters(drift_window=8))
+    for _, heads, variances, _ in live[:8]:
+        out = proc.process(heads, variances)
+        assert out.values["drift.level"] == "OK", out.values
+    for _, heads, variances, _ in live[8:]:
+        out = proc.process(weaker(heads), variances)
+    assert out.values["drift.level"] == "ERROR" and "domain_drift" in out.errors, out.values
+    assert "detector score" in out.issues["domain_drift"]
+
+    passthrough = MimoProcessor(s, models, drift=DriftParameters(
+        drift_window=8, drift_action="passthrough"))
+    for _, heads, variances, _ in live[8:]:
+        out = passthrough.process(weaker(heads), variances)
+    o = out.out
+    np.testing.assert_allclose(o.confidence, o.frame.merge.scores)
+    assert np.isnan(o.predicted_iou).all()

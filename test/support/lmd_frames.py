@@ -51,16 +51,18 @@ def iou_targets(boxes, gt_boxes):
     return np.nan_to_num(iou_bev(boxes, gt_boxes).max(axis=1), nan=0.0)
 
 
-def train_models(out_dir, settings, n_frames=6, seed=100, record_settings=False):
+def train_models(out_dir, settings, n_frames=6, seed=100, record_settings=False,
+                 profile=False):
     """Fit an XGBoost classifier (TP iff IoU_BEV >= 0.5) and regressor (IoU_BEV) on
     ``pipeline.frame_features`` of small synthetic frames and save them with
     ``meta_model.save_pair`` as ``lmd_<mode>_*``; returns (classifier, regressor) paths.
     ``record_settings``: record ``settings`` in the manifests as lmd-train does (else an
-    older manifest without them)."""
+    older manifest without them); ``profile``: record the training data's domain profile as
+    lmd-train does."""
     from lidar_quality_core import meta_model
     from lmd_ros.pipeline import frame_features
 
-    X, y = [], []
+    X, y, scores, boxes, points = [], [], [], [], []
     for k in range(n_frames):
         f = synthetic.synthetic_frame(n_points=20_000, n_objects=15, n_proposals=150,
                                       seed=seed + k)
@@ -69,11 +71,18 @@ def train_models(out_dir, settings, n_frames=6, seed=100, record_settings=False)
                             None if settings.proposal_mode == "none" else props, settings)
         X.append(fr.features[fr.valid])
         y.append(iou_targets(fr.detections.boxes[fr.valid], f.gt_boxes))
+        scores.append(fr.detections.scores[fr.valid])
+        boxes.append(int(fr.valid.sum()))
+        points.append(fr.n_points)
     X, y = np.concatenate(X), np.concatenate(y)
     clf = meta_model.fit_estimator("xgboost", "classification", X, (y >= 0.5).astype(float))
     reg = meta_model.fit_estimator("xgboost", "regression", X, y)
     training = {"source": "lidar_quality_core.synthetic", "frames": n_frames, "seed": seed}
     if record_settings:
         training.update(meta_model.settings_record(settings, "lmd"))
+    prof = meta_model.training_profile(X, settings.feature_names(), {
+        "detector score": np.concatenate(scores), "boxes per frame": boxes,
+        "points per frame": points}) if profile else None
     return meta_model.save_pair(out_dir, f"lmd_{settings.proposal_mode}", clf, reg,
-                                settings.feature_names(), training_data=training)
+                                settings.feature_names(), training_data=training,
+                                domain_profile=prof)

@@ -295,7 +295,7 @@ def train(ds: SegmentDataset, out, *, kind: str = "xgboost", n_folds: int = 10,
     cpath, rpath = meta_model.save_pair(out, PREFIX, clf, reg, ds.names,
                                         training_data=training_data,
                                         domain_profile=meta_model.training_profile(
-                                            ds.X, ds.names),
+                                            ds.X, ds.names, groups=ds.sequence),
                                         classifier_metrics=task_cv("classification"),
                                         regressor_metrics=task_cv("regression"))
     sizes = {p.name: p.stat().st_size for p in (cpath, rpath)}
