@@ -183,13 +183,15 @@ def explain(name: str, profile: QuantityProfile, values) -> str:
 @dataclass
 class DriftReport:
     """The monitor's state after a frame: window score, level, the most drifted
-    quantities (name, PSI) largest first, and their description in words."""
+    quantities (name, PSI) largest first, their description in words, the frames in the
+    window and how many quantities had enough values there to be scored."""
 
     score: float
     level: int
     drifted: list
     text: str
     frames: int
+    scored: int = 0
 
 
 class DriftMonitor:
@@ -230,7 +232,7 @@ class DriftMonitor:
         level = ERROR if score >= self.error else WARN if score >= self.warn else OK
         drifted = [(k, round(v, 4)) for k, v in ranked[:self.top] if v >= self.warn]
         text = "; ".join(explain(k, self.profile.quantities[k], live[k]) for k, _ in drifted)
-        return DriftReport(float(score), level, drifted, text, len(self._frames))
+        return DriftReport(float(score), level, drifted, text, len(self._frames), len(scores))
 
 
 # ------------------------------------------------------------------ in the nodes
@@ -289,7 +291,7 @@ class DomainCheck:
                                            "(trained before profiles; retrain to monitor)"})
         r = self.monitor.add(quantities)
         values = {"drift.score": round(r.score, 3), "drift.level": LEVEL_NAMES[r.level],
-                  "drift.window_frames": r.frames}
+                  "drift.window_frames": r.frames, "drift.scored_quantities": r.scored}
         if r.drifted:
             values["drift.quantities"] = ", ".join(k for k, _ in r.drifted)
         issue = None

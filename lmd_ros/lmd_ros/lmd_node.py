@@ -27,7 +27,10 @@ Outputs (header copied from the input detections, or the proposals in exact mode
   confidence, predicted IoU (NaN for invalid boxes), and the two model ids.
 * ``output/markers``: boxes of the published detections coloured by confidence, labelled
   ``"<class> c=0.87 iou=0.62"`` (``publish_markers``; built only while subscribed).
-* ``/diagnostics``.
+* ``/diagnostics``, among its values the drift of the inputs from the models' training
+  data (``drift.score``, ``drift.level``, ``drift.quantities``: ``domain_profile``;
+  ``drift_warn`` / ``drift_error``; ``drift_action: passthrough`` gives an out-of-domain
+  frame the detector's own scores and NaN predicted IoU).
 
 Autoware (``input_type: autoware``): ``input/detections`` and ``input/proposals`` are
 autoware_perception_msgs/DetectedObjects (classes by ``autoware_class_map``), and

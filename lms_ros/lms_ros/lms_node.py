@@ -23,7 +23,10 @@ Outputs (header copied from ``input/points``):
   ``output/points`` is its id), excluded ones with NaN confidence;
 * ``output/markers``: centroids of the scored segments coloured by confidence
   (``publish_markers``; built only while someone subscribes);
-* ``/diagnostics``.
+* ``/diagnostics``, among its values the drift of the segments' metrics from the models'
+  training data (``drift.score``, ``drift.level``, ``drift.quantities``:
+  ``domain_profile``; ``drift_action: passthrough`` leaves an out-of-domain frame's
+  segments unscored, NaN).
 
 The frame work is :class:`lms_ros.pipeline.LmsProcessor` (no ROS; definitions in
 :mod:`lms_ros.pipeline` and :mod:`lidar_quality_core.lms.segment_metrics`); this shell declares the

@@ -11,8 +11,12 @@ covariance diagonal; id ``"<head>:<id>"`` of the top member; see
 ``pipeline.output_messages``), ``output/uncertainty`` (ClusterUncertaintyArray, same
 order), ``output/markers`` (boxes coloured by confidence, ``publish_markers``; built
 only while someone subscribes),
-``/diagnostics``. The heads' boxes are merged (clusters of heads), so the output has one
-detection per cluster, not per input box; unusable input boxes are left out and reported.
+``/diagnostics`` (among its values the drift of the merged detections' features and
+scores from the models' training data: ``drift.score``, ``drift.level``,
+``drift.quantities``; ``drift_action: passthrough`` gives an out-of-domain frame the
+merged scores as confidences and NaN predicted IoU). The heads' boxes are merged
+(clusters of heads), so the output has one detection per cluster, not per input box;
+unusable input boxes are left out and reported.
 
 Autoware (``input_type: autoware``): the heads are autoware_perception_msgs/DetectedObjects
 (classes by ``autoware_class_map``) and ``output/objects`` (DetectedObjects) replaces

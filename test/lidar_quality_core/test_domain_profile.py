@@ -78,6 +78,7 @@ def test_monitor_needs_enough_values():
         assert mon.add({"points": [5e4]}).score == 0.0     # not scored yet
     r = mon.add({"points": [5e4]})
     assert r.level == ERROR and "points" in r.text and "another sensor" in r.text
+    assert r.scored == 1
 
 
 def test_explain_reads_medians():
