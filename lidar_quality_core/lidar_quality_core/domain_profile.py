@@ -20,7 +20,7 @@ frame, ``score`` is the largest PSI beyond the quantity's ``spread`` (a window h
 scene or two, and one training sequence's values already differ from the mix of all
 sequences by that much: positions, sizes) over the quantities with at least ``min_values``
 values in the window (a per-frame statistic needs that many frames; a per-box feature a
-frame or two), the most drifted ones named in words by :func:`explain`, and ``level``
+frame or two), once the window holds ``min_frames`` frames (10, or the window), the most drifted ones named in words by :func:`explain`, and ``level``
 OK / WARN / ERROR from two thresholds. The default thresholds are the conventional PSI
 readings; they are to be calibrated on held-out in-domain frames and simulated shifts
 (issue 18's domain-shift benchmark).
@@ -170,7 +170,11 @@ def explain(name: str, profile: QuantityProfile, values) -> str:
     if len(finite) and np.isfinite(profile.median):
         live, train = float(np.median(finite)), profile.median
         parts.append(f"median {live:.3g}, training median {train:.3g}")
-        if train != 0 and live / train > 0 and abs(math.log(abs(live / train))) >= math.log(3):
+        q = profile.quantiles
+        iqr = q[15] - q[5]          # 75 % and 25 %
+        # a ratio only for a median clear of 0 (one near 0 makes any ratio huge)
+        if (train != 0 and live / train > 0 and abs(train) >= 0.25 * iqr
+                and abs(math.log(live / train)) >= math.log(3)):
             parts.append(f"({live / train:.3g}x)")
     miss = 1.0 - len(finite) / len(v) if len(v) else 0.0
     if abs(miss - profile.missing) > 0.1:
@@ -200,7 +204,8 @@ class DriftMonitor:
     returns the :class:`DriftReport` over the last ``window`` frames."""
 
     def __init__(self, profile: DomainProfile, *, window: int = 50, warn: float = 0.25,
-                 error: float = 0.5, top: int = 3, min_values: int = 30):
+                 error: float = 0.5, top: int = 3, min_values: int = 30,
+                 min_frames: int = 10):
         if window < 1:
             raise ValueError("window must be at least 1 frame")
         if not 0 <= warn <= error:
@@ -208,6 +213,8 @@ class DriftMonitor:
         self.profile, self.window, self.warn, self.error, self.top = (
             profile, window, warn, error, top)
         self.min_values = min_values
+        #: frames before any score: a frame or two of one scene tell little
+        self.min_frames = min(min_frames, window)
         self._frames: deque = deque(maxlen=window)
 
     def add(self, values: Mapping[str, object]) -> DriftReport:
@@ -217,6 +224,8 @@ class DriftMonitor:
         scores = {}
         live = {}
         for name, prof in self.profile.quantities.items():
+            if len(self._frames) < self.min_frames:
+                break
             parts = [f[name] for f in self._frames if name in f]
             if not parts:
                 continue

@@ -569,12 +569,14 @@ class LmdProcessor:
 def frame_quantities(frame: LmdFrame, feature_names) -> dict:
     """What the drift monitor compares with the training profile (``meta_model``'s
     ``training_profile`` as ``lmd-train`` records it): every feature of the valid boxes,
-    their detector scores, boxes and points of the frame."""
+    their detector scores and the frame's points. (Not the number of boxes: how many
+    objects a frame holds is the scene's, and differs between the training sequences
+    themselves.)"""
     v = frame.valid
     X = frame.features[v]
     out = {name: X[:, j] for j, name in enumerate(feature_names)}
     out.update({"detector score": frame.detections.scores[v],
-                "boxes per frame": [int(v.sum())], "points per frame": [frame.n_points]})
+                "points per frame": [frame.n_points]})
     return out
 
 

@@ -615,9 +615,11 @@ def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, mode
 
 def frame_quantities(frame: MimoFrame, feature_names) -> dict:
     """What the drift monitor compares with the training profile (as ``mimo-train``
-    records it): every feature of the merged detections, their scores, their number."""
+    records it): every feature of the merged detections and their scores. (Not their
+    number: how many objects a frame holds is the scene's, and differs between the
+    training sequences themselves.)"""
     out = {name: frame.features[:, j] for j, name in enumerate(feature_names)}
-    out.update({"detector score": frame.merge.scores, "boxes per frame": [len(frame)]})
+    out["detector score"] = frame.merge.scores
     return out
 
 

@@ -593,8 +593,7 @@ def test_drift_check_flags_another_detectors_scores(tmp_path):
              head_frames(n_frames=10, seed=1)]
     X = np.vstack([f.features for f in train])
     prof = training_profile(X, names, {
-        "detector score": np.concatenate([f.merge.scores for f in train]),
-        "boxes per frame": [len(f) for f in train]})
+        "detector score": np.concatenate([f.merge.scores for f in train])})
     assert set(prof["quantities"]) == set(frame_quantities(train[0], names))
     y = (np.arange(len(X)) % 2).astype(float)
     c, r = save_pair(tmp_path, "mimo", fit_estimator("linear", "classification", X, y),

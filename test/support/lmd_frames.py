@@ -81,8 +81,8 @@ def train_models(out_dir, settings, n_frames=6, seed=100, record_settings=False,
     if record_settings:
         training.update(meta_model.settings_record(settings, "lmd"))
     prof = meta_model.training_profile(X, settings.feature_names(), {
-        "detector score": np.concatenate(scores), "boxes per frame": boxes,
-        "points per frame": points}) if profile else None
+        "detector score": np.concatenate(scores), "points per frame": points}) \
+        if profile else None
     return meta_model.save_pair(out_dir, f"lmd_{settings.proposal_mode}", clf, reg,
                                 settings.feature_names(), training_data=training,
                                 domain_profile=prof)

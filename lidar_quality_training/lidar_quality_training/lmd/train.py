@@ -180,10 +180,8 @@ def train(train_sets: dict, test_sets: dict | None, out: Path, *, kind: str = "x
             training["fitted_on"] = backend.record()
         known = ds.frame_points >= 0                     # -1: unknown (feature tables)
         profile = meta_model.training_profile(ds.X, ds.feature_names, {
-            "detector score": ds.score, "boxes per frame": np.bincount(
-                ds.frame, minlength=ds.n_frames), "points per frame": ds.frame_points[known]},
+            "detector score": ds.score, "points per frame": ds.frame_points[known]},
             groups=ds.group, extra_groups={"detector score": ds.group,
-                                           "boxes per frame": ds.frame_group,
                                            "points per frame": ds.frame_group[known]})
         cpath, rpath = meta_model.save_pair(out, f"lmd_{mode}", clf, reg, ds.feature_names,
                                             training_data=_round(training),

@@ -94,11 +94,9 @@ def train_pair(ds: MimoDataset, use_points: bool, out_dir, *, kind: str = "xgboo
         training["cross_validation"] = "skipped: --cv-folds 0"
     if backend.record():
         training["fitted_on"] = backend.record()
-    profile = meta_model.training_profile(X, names, {
-        "detector score": ds.m_score,
-        "boxes per frame": np.bincount(ds.m_frame, minlength=ds.n_frames)},
-        groups=groups, extra_groups={"detector score": groups,
-                                     "boxes per frame": ds.frame_group})
+    profile = meta_model.training_profile(X, names, {"detector score": ds.m_score},
+                                          groups=groups,
+                                          extra_groups={"detector score": groups})
     cpath, rpath = meta_model.save_pair(out_dir, res["prefix"], clf, reg, names,
                                         training_data=training, domain_profile=profile,
                                         classifier_metrics=res.get("classifier_cv"),

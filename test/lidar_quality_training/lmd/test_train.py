@@ -50,7 +50,7 @@ def test_train_writes_verified_models_per_mode(data, tmp_path, monkeypatch, caps
         # the training data's domain profile: every feature, the scores, frames' points
         prof = models.domain_profile
         assert set(prof.quantities) == {*settings.feature_names(), "detector score",
-                                        "boxes per frame", "points per frame"}
+                                        "points per frame"}
         assert prof.quantities["detector score"].count == len(trn)
         assert prof.quantities["detector score"].median == pytest.approx(
             float(np.median(trn.score)), abs=1e-5)

@@ -59,7 +59,7 @@ def test_models_load_through_the_store_and_rank_the_training_data(trained):
         assert metrics.auroc(ds.tp, conf) > 0.9
         assert metrics.r2(ds.m_iou_class, iou) > 0.5
         prof = mm.domain_profile
-        assert set(prof.quantities) == {*names, "detector score", "boxes per frame"}
+        assert set(prof.quantities) == {*names, "detector score"}
         assert prof.quantities[names[0]].count == np.isfinite(X[:, 0]).sum()
     # the schema is enforced: the statistics model refuses the point features' schema
     with pytest.raises(ModelStoreError):
