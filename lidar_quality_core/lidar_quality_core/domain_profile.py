@@ -20,8 +20,9 @@ frame, ``score`` is the largest PSI beyond the quantity's ``spread`` (a window h
 scene or two, and one training sequence's values already differ from the mix of all
 sequences by that much: positions, sizes) over the quantities with at least ``min_values``
 values in the window (a per-frame statistic needs that many frames; a per-box feature a
-frame or two), once the window holds ``min_frames`` frames (10, or the window), the most drifted ones named in words by :func:`explain`, and ``level``
-OK / WARN / ERROR from two thresholds. The default thresholds are the conventional PSI
+frame or two), once the window holds ``min_frames`` frames (10, or the window); the
+most drifted ones are named in words by :func:`explain`, and ``level`` is OK / WARN /
+ERROR from two thresholds. The default thresholds are the conventional PSI
 readings; they are to be calibrated on held-out in-domain frames and simulated shifts
 (issue 18's domain-shift benchmark).
 """
