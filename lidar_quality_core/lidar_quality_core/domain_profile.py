@@ -38,6 +38,7 @@ import numpy as np
 from .parameters import param
 
 __all__ = ["LEVELS", "EPS", "VALUES_PER_BIN", "QuantityProfile", "DomainProfile", "psi",
+           "fine_counts", "psi_counts",
            "DriftMonitor", "DriftReport", "explain", "ACTIONS", "DriftParameters",
            "DomainCheck", "DomainVerdict"]
 
@@ -128,39 +129,84 @@ class DomainProfile:
         return cls({k: QuantityProfile.from_json(q) for k, q in d["quantities"].items()})
 
 
-def _bins(quantiles: np.ndarray, n_bins: int):
-    """Inner edges of ``n_bins`` quantile bins (equal edges merged) and the training mass
-    of each bin (``x`` falls in bin ``j`` when ``inner[j-1] <= x < inner[j]``)."""
-    idx = np.round(np.linspace(0, len(quantiles) - 1, n_bins + 1)).astype(int)
-    inner = np.unique(quantiles[idx[1:-1]])
-    # P(X < u) from the quantiles: the first level whose quantile reaches u; a tie (a
-    # point mass) thereby stays in the bin that starts at it
-    below = np.asarray(LEVELS)[np.searchsorted(quantiles, inner, side="left")]
-    return inner, np.diff(np.r_[0.0, below, 1.0])
+N_FINE = len(LEVELS) - 1      # the profile's bins: 5 % of the training values each
+
+
+def fine_counts(profile: QuantityProfile, values) -> np.ndarray:
+    """(``N_FINE`` + 1,) counts of ``values`` in the profile's quantile bins (``x`` in bin
+    ``j`` when ``q[j] <= x < q[j+1]``, ties staying in the bin that starts at them), then
+    the missing (NaN) values."""
+    v = np.asarray(values, np.float64).reshape(-1)
+    finite = v[np.isfinite(v)]
+    edges = np.asarray(profile.quantiles[1:-1])
+    c = np.bincount(np.searchsorted(edges, finite, side="right"), minlength=N_FINE)
+    return np.r_[c, len(v) - len(finite)].astype(np.float64)
+
+
+def _fine_mass(profile: QuantityProfile) -> np.ndarray:
+    """The training mass of each bin of :func:`fine_counts` (a tie's point mass in the bin
+    that starts at it: P(X < u) is the first level whose quantile reaches u)."""
+    q = np.asarray(profile.quantiles)
+    below = np.asarray(LEVELS)[np.searchsorted(q, q[1:-1], side="left")]
+    mass = np.diff(np.r_[0.0, below, 1.0]) * (1.0 - profile.missing)
+    return np.r_[mass, profile.missing]
+
+
+def psi_counts(profile: QuantityProfile, counts, mass=None) -> float:
+    """:func:`psi` of values given by their :func:`fine_counts` (summed over frames):
+    about ``VALUES_PER_BIN`` values a bin, adjacent bins merged."""
+    counts = np.asarray(counts, np.float64)
+    n = float(counts.sum())
+    if n <= 0 or profile.count == 0:
+        return math.nan
+    mass = _fine_mass(profile) if mass is None else mass
+    n_bins = int(np.clip(n // VALUES_PER_BIN, 2, N_FINE))
+    starts = np.round(np.linspace(0, N_FINE, n_bins + 1)).astype(int)[:-1]
+    c = np.r_[np.add.reduceat(counts[:N_FINE], starts), counts[N_FINE]]
+    q = np.r_[np.add.reduceat(mass[:N_FINE], starts), mass[N_FINE]]
+    used = (c > 0) | (q > 0)
+    c, q = c[used], np.maximum(q[used], EPS)
+    # half a value added to every bin (Jeffreys): an empty bin of a small sample is not
+    # read as a vanished part of the distribution
+    p = (c + 0.5) / (n + 0.5 * len(c))
+    raw = float(np.sum((p - q) * np.log(p / q)))
+    expected = (len(p) - 1) * (1.0 / n + 1.0 / max(profile.count, 1))
+    return max(raw - expected, 0.0)
 
 
 def psi(profile: QuantityProfile, values) -> float:
     """Bias-corrected population stability index of ``values`` against ``profile``
     (module docstring); NaN when either side has no value."""
-    v = np.asarray(values, np.float64).reshape(-1)
-    if not len(v) or profile.count == 0:
-        return math.nan
-    finite = v[np.isfinite(v)]
-    n = len(v)
-    n_bins = int(np.clip(n // VALUES_PER_BIN, 2, len(LEVELS) - 1))
-    inner, q = _bins(np.asarray(profile.quantiles), n_bins)
-    counts = np.bincount(np.searchsorted(inner, finite, side="right"),
-                         minlength=len(q)).astype(np.float64)
-    counts = np.r_[counts, n - len(finite)]
-    q = np.r_[q * (1.0 - profile.missing), profile.missing]
-    used = (counts > 0) | (q > 0)
-    counts, q = counts[used], np.maximum(q[used], EPS)
-    # half a value added to every bin (Jeffreys): an empty bin of a small sample is not
-    # read as a vanished part of the distribution
-    p = (counts + 0.5) / (n + 0.5 * len(counts))
-    raw = float(np.sum((p - q) * np.log(p / q)))
-    expected = (len(p) - 1) * (1.0 / n + 1.0 / max(profile.count, 1))
-    return max(raw - expected, 0.0)
+    return psi_counts(profile, fine_counts(profile, values))
+
+
+def _counts_matrix(V: np.ndarray, edges: np.ndarray) -> np.ndarray:
+    """:func:`fine_counts` of each column of ``V`` (n, k) against ``edges`` (k, N_FINE - 1)
+    at once: (k, N_FINE + 1)."""
+    n, k = V.shape
+    finite = np.isfinite(V)
+    # a value's bin = the number of edges at or below it (searchsorted, side right)
+    bins = (V[:, :, None] >= edges[None, :, :]).sum(axis=2)
+    flat = (bins + np.arange(k) * N_FINE)[finite]
+    out = np.zeros((k, N_FINE + 1))
+    out[:, :N_FINE] = np.bincount(flat, minlength=k * N_FINE).reshape(k, N_FINE)
+    out[:, N_FINE] = n - finite.sum(axis=0)
+    return out
+
+
+def _psi_matrix(counts: np.ndarray, mass: np.ndarray, n: float, train_n: np.ndarray):
+    """:func:`psi_counts` of rows of ``counts`` that all hold ``n`` values."""
+    n_bins = int(np.clip(n // VALUES_PER_BIN, 2, N_FINE))
+    starts = np.round(np.linspace(0, N_FINE, n_bins + 1)).astype(int)[:-1]
+    c = np.c_[np.add.reduceat(counts[:, :N_FINE], starts, axis=1), counts[:, N_FINE]]
+    q = np.c_[np.add.reduceat(mass[:, :N_FINE], starts, axis=1), mass[:, N_FINE]]
+    used = (c > 0) | (q > 0)
+    n_used = used.sum(axis=1)
+    q = np.maximum(q, EPS)
+    p = (c + 0.5) / (n + 0.5 * n_used)[:, None]
+    raw = np.where(used, (p - q) * np.log(p / q), 0.0).sum(axis=1)
+    expected = (n_used - 1) * (1.0 / n + 1.0 / np.maximum(train_n, 1))
+    return np.maximum(raw - expected, 0.0)
 
 
 def explain(name: str, profile: QuantityProfile, values) -> str:
@@ -216,33 +262,55 @@ class DriftMonitor:
         self.min_values = min_values
         #: frames before any score: a frame or two of one scene tell little
         self.min_frames = min(min_frames, window)
-        self._frames: deque = deque(maxlen=window)
+        self._names = list(profile.quantities)
+        qs = [profile.quantities[k] for k in self._names]
+        self._index = {k: i for i, k in enumerate(self._names)}
+        self._edges = np.array([q.quantiles[1:-1] for q in qs]).reshape(-1, N_FINE - 1)
+        self._mass = np.array([_fine_mass(q) for q in qs]).reshape(-1, N_FINE + 1)
+        self._train_n = np.array([q.count for q in qs], np.float64)
+        self._spread = np.array([q.spread for q in qs], np.float64)
+        self._empty = self._train_n == 0
+        # per frame: the quantities' bin counts (scoring, summed as frames come and go)
+        # and their values (only to put the drifted ones in words)
+        self._counts: deque = deque()
+        self._values: deque = deque()
+        self._total = np.zeros((len(self._names), N_FINE + 1))
 
     def add(self, values: Mapping[str, object]) -> DriftReport:
+        counts = np.zeros_like(self._total)
         frame = {k: np.asarray(v, np.float64).reshape(-1) for k, v in values.items()
-                 if k in self.profile.quantities}
-        self._frames.append(frame)
-        scores = {}
-        live = {}
-        for name, prof in self.profile.quantities.items():
-            if len(self._frames) < self.min_frames:
-                break
-            parts = [f[name] for f in self._frames if name in f]
-            if not parts:
-                continue
-            live[name] = np.concatenate(parts)
-            if len(live[name]) < self.min_values:
-                continue       # too few values to tell a shift from chance
-            # beyond what one training sequence already differs from the mix of all
-            s = psi(prof, live[name]) - prof.spread
-            if np.isfinite(s):
-                scores[name] = s
-        ranked = sorted(scores.items(), key=lambda kv: -kv[1])
+                 if k in self._index}
+        by_len: dict[int, list[str]] = {}
+        for k, v in frame.items():
+            by_len.setdefault(len(v), []).append(k)
+        for n, names in by_len.items():   # quantities of a frame's rows: one matrix
+            idx = [self._index[k] for k in names]
+            V = np.stack([frame[k] for k in names], axis=1) if n else np.zeros((0, len(idx)))
+            counts[idx] = _counts_matrix(V, self._edges[idx])
+        self._counts.append(counts)
+        self._values.append(frame)
+        self._total += counts
+        if len(self._counts) > self.window:
+            self._total -= self._counts.popleft()
+            self._values.popleft()
+        scores = np.full(len(self._names), np.nan)
+        if len(self._counts) >= self.min_frames:
+            n = self._total.sum(axis=1)
+            ok = (n >= self.min_values) & ~self._empty
+            for value in np.unique(n[ok]).tolist():
+                rows = np.flatnonzero(ok & (n == value))
+                # beyond what one training sequence already differs from the mix of all
+                scores[rows] = _psi_matrix(self._total[rows], self._mass[rows], value,
+                                           self._train_n[rows]) - self._spread[rows]
+        scored = np.flatnonzero(np.isfinite(scores))
+        ranked = [(self._names[i], float(scores[i]))
+                  for i in scored[np.argsort(-scores[scored], kind="stable")].tolist()]
         score = ranked[0][1] if ranked else 0.0
         level = ERROR if score >= self.error else WARN if score >= self.warn else OK
         drifted = [(k, round(v, 4)) for k, v in ranked[:self.top] if v >= self.warn]
-        text = "; ".join(explain(k, self.profile.quantities[k], live[k]) for k, _ in drifted)
-        return DriftReport(float(score), level, drifted, text, len(self._frames), len(scores))
+        text = "; ".join(explain(k, self.profile.quantities[k], np.concatenate(
+            [f[k] for f in self._values if k in f])) for k, _ in drifted)
+        return DriftReport(float(score), level, drifted, text, len(self._counts), len(scored))
 
 
 # ------------------------------------------------------------------ in the nodes

@@ -111,3 +111,25 @@ def test_spread_between_sequences_is_not_drift():
     assert back == prof
     with pytest.raises(ValueError, match="group labels"):
         DomainProfile.of({"a": [1.0, 2.0]}, {"a": [0]})
+
+
+def test_monitor_scores_are_psi_of_the_window():
+    """The monitor keeps bin counts per frame (cheap per frame); its scores are psi of the
+    window's values minus the spread, quantity by quantity, NaN and ties included."""
+    from lidar_quality_core.domain_profile import fine_counts, psi_counts
+
+    rng = np.random.default_rng(7)
+    train = {"a": rng.normal(size=3000), "b": rng.integers(0, 3, 3000).astype(float),
+             "c": np.r_[rng.gamma(2.0, 1.0, 2900), np.full(100, np.nan)]}
+    prof = DomainProfile.of(train, {k: np.repeat(np.arange(6), 500) for k in train})
+    mon = DriftMonitor(prof, window=4, min_frames=1, min_values=1, top=3, warn=0.0)
+    frames = [{"a": rng.normal(0.5, 1.0, 25), "b": rng.integers(0, 2, 25).astype(float),
+               "c": np.r_[rng.gamma(2.0, 2.0, 20), [np.nan] * 5]} for _ in range(7)]
+    for k, f in enumerate(frames):
+        r = mon.add(f)
+        window = frames[max(0, k - 3):k + 1]
+        for name, score in r.drifted:
+            q = prof.quantities[name]
+            v = np.concatenate([w[name] for w in window])
+            assert score == pytest.approx(psi(q, v) - q.spread, abs=1e-4)
+            assert psi_counts(q, fine_counts(q, v)) == psi(q, v)
