@@ -12,13 +12,14 @@ WS_INPUTS := $(shell find -L ros2_ws/src -maxdepth 3 \( -name package.xml -o -na
 	-o -name '*.launch.py' \) -not -path '*/build/*' 2>/dev/null)
 
 .PHONY: help setup build test bench demo reference-models meta-data meta-models lmd-models \
-	lms-models mimo-models fuzz soak clean distclean lock
+	lms-models mimo-models domain-report fuzz soak clean distclean lock
 
 help:
 	@echo "make demo   run the main job (set-up and build on first use); AUTOWARE=1: LMD and MIMO on Autoware DetectedObjects"
 	@echo "make test   run the test suite (set-up and build on first use)"
 	@echo "make reference-models   retrain the reference perception under models/reference"
 	@echo "make meta-models   retrain the LMD / LMS / MIMO meta models (models/lmd, lms, mimo) and write their reports"
+	@echo "make domain-report   LMD's drift monitor in and out of its training domain: out/domain/report.md"
 	@echo "make fuzz | soak   hardening runs (malformed input; 10 minutes at 10 Hz)"
 	@echo "make setup | build | bench | clean | distclean | lock"
 	@echo "LQ_SHM_SEGMENT_MB=N make ...   Fast DDS shared-memory segment of N MiB (default 64: clouds up to 66 MB)"
@@ -71,6 +72,11 @@ lms-models: build $(META_BAGS)
 mimo-models: build $(META_BAGS)
 	bash scripts/with_env.sh python -m lidar_quality_training.mimo.train --data data/perception/meta_train --out models/mimo --cache data/cache/mimo
 	bash scripts/with_env.sh python -m lidar_quality_training.mimo.evaluate --data data/perception/meta_test --models models/mimo --out out/mimo_eval --cache data/cache/mimo --docs docs --model-card models/mimo/MODEL_CARD.md
+
+# Issue 18's domain-shift benchmark, first part: LMD's drift monitor in and out of its
+# training domain (simulated sensors, detector and intensity shifts, real KITTI scans).
+domain-report: build
+	bash scripts/with_env.sh python -m lidar_quality_tools.domain_report --out out/domain
 
 fuzz: build
 	bash scripts/with_env.sh python scripts/fuzz_nodes.py --out out/fuzz/report.json
