@@ -73,6 +73,7 @@ __all__ = [
     "LoadedModel",
     "manifest_path_for",
     "sha256_file",
+    "write_atomic",
     "save_model",
     "load_model",
     "read_manifest",
@@ -211,8 +212,12 @@ def _xgb_objective(booster: Any) -> str:
 # -- saving ----------------------------------------------------------------------------
 
 
-def _write_atomic(target: Path, write: Any, suffix: str) -> str:
-    """Write via ``write(tmp_path)`` then rename onto ``target``; returns the SHA-256."""
+def write_atomic(target: Path, write: Any, suffix: str = "", *, digest: bool = True
+                 ) -> str | None:
+    """Write via ``write(tmp_path)`` (a file beside ``target``, named ``.<name>.*.tmp``
+    plus ``suffix``), synced, then renamed onto ``target``: a reader sees the old file or
+    the complete new one. Returns the SHA-256 of what was written (``digest``), else
+    None."""
     fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp" + suffix,
                                dir=target.parent)
     os.close(fd)
@@ -222,13 +227,13 @@ def _write_atomic(target: Path, write: Any, suffix: str) -> str:
             os.fsync(f.fileno())
         # mkstemp creates 0600; the node may run as another user than the trainer.
         os.chmod(tmp, 0o644)
-        digest = sha256_file(tmp)
+        sha = sha256_file(tmp) if digest else None
         os.replace(tmp, target)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
-    return digest
+    return sha
 
 
 def save_model(
@@ -311,7 +316,7 @@ def save_model(
             raise ModelStoreError(f"{path.name}: target_names need a regression model")
         manifest["target_names"] = [str(t) for t in target_names]
 
-    digest = _write_atomic(path, writer, suffix)
+    digest = write_atomic(path, writer, suffix)
     manifest.update(
         model_file=path.name,
         sha256=digest,
@@ -331,7 +336,7 @@ def save_model(
         with open(tmp, "w", encoding="utf-8") as f:
             f.write(text)
 
-    _write_atomic(manifest_path_for(path), write_manifest, "")
+    write_atomic(manifest_path_for(path), write_manifest)
     return json.loads(text)
 
 

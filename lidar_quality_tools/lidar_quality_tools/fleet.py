@@ -41,7 +41,7 @@ import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from .process import NODES, UsageError, _parse_params, build_runners, node_parameters
+from .process import NODES, UsageError, _parse_params, build_runners, nodes_parameters
 
 __all__ = ["Task", "RunSpec", "plan_tasks", "resolve_inputs", "run_task", "process_bags",
            "worker_environ", "local_cluster", "status_table", "main"]
@@ -174,19 +174,8 @@ def _input_fingerprint(bag: Path) -> list:
                   for p in bag.iterdir() if p.is_file())
 
 
-def _settings_record(spec: RunSpec) -> dict:
-    """Every node's full parameter values (defaults, installed YAML, overrides)."""
-    per_node: dict = {n: {} for n in spec.nodes}
-    for key, value in spec.params.items():
-        node, _, name = key.partition(".")
-        per_node.setdefault(node, {}).update(value if not name else {name: value})
-    return {n: node_parameters(n, per_node[n]) for n in spec.nodes}
-
-
 def _model_ids(runners) -> dict:
-    return {r.name: {"confidence": getattr(r.processor.models, "confidence_model_id", ""),
-                     "iou": getattr(r.processor.models, "iou_model_id", "")}
-            for r in runners if getattr(r.processor, "models", None) is not None}
+    return {r.name: r.model_ids() for r in runners}
 
 
 def run_key(task: Task, spec: RunSpec, versions: dict) -> str:
@@ -206,10 +195,11 @@ def _status_path(out: Path, task: Task) -> Path:
 
 
 def _write_json(path: Path, data: dict) -> None:
+    from lidar_quality_core.model_store import write_atomic
+
     path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    tmp.write_text(json.dumps(data, indent=1, sort_keys=True))
-    os.replace(tmp, path)
+    text = json.dumps(data, indent=1, sort_keys=True)
+    write_atomic(path, lambda tmp: Path(tmp).write_text(text), digest=False)
 
 
 def _progress_event(task_id: str, frames: int) -> None:
@@ -408,7 +398,7 @@ def process_bags(bags, out, *, nodes=tuple(NODES), params: dict | None = None,
         if r == o or o in r.parents or r in o.parents:
             raise UsageError(f"--out {out} overlaps input {b}")
     versions = {"code": code_version(), "models": _model_ids(runners),
-                "settings": _settings_record(spec)}
+                "settings": nodes_parameters(nodes, spec.params)}
     tasks = plan_tasks(inputs, slice_s, topic_of("points", spec.topics))
     keys = {t.id: run_key(t, spec, versions) for t in tasks}
     say = (lambda text: print(text, file=sys.stderr)) if progress else (lambda text: None)

@@ -50,9 +50,7 @@ from __future__ import annotations
 
 import glob
 import json
-import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
@@ -203,21 +201,37 @@ def write_table(table, path) -> Path:
     """Write ``table`` to ``path`` atomically (a temp file beside it, then a rename): a
     reader sees the old file or the complete new one."""
     import pyarrow.parquet as pq
+    from lidar_quality_core.model_store import write_atomic
 
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # the temp name does not end in .parquet: a directory read never picks it up
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".partial", dir=path.parent)
-    os.close(fd)
-    try:
-        pq.write_table(table, tmp)
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    # the temp name ends in .tmp, not .parquet: a directory read never picks it up
+    write_atomic(path, lambda tmp: pq.write_table(table, tmp), digest=False)
     return path
+
+
+def add_table_arguments(ap, *, instead_of: str, export_to: str, test: bool = False) -> None:
+    """A trainer's ``--features`` (with ``test``: ``--test-features``), ``--export-features``
+    (the dataset written to ``export_to``) and ``--export-only``; see
+    :func:`check_table_arguments`."""
+    g = ap.add_argument_group(f"feature tables (Parquet; instead of {instead_of})")
+    g.add_argument("--features", action="append", default=None, metavar="PATH",
+                   help="training feature tables: a file, a directory tree of *.parquet "
+                        f"(Hive partitions too) or a glob; repeatable. Replaces {instead_of}; "
+                        "the tables' settings are used")
+    if test:
+        g.add_argument("--test-features", action="append", default=None, metavar="PATH",
+                       help="held-out feature tables (same forms; repeatable)")
+    g.add_argument("--export-features", type=Path, default=None, metavar="DIR",
+                   help=f"write the dataset as feature tables: {export_to}")
+    g.add_argument("--export-only", action="store_true",
+                   help="with --export-features: write the tables and stop (no training)")
+
+
+def check_table_arguments(ap, args) -> None:
+    """The argument parser's error for ``--export-only`` without ``--export-features``."""
+    if args.export_only and args.export_features is None:
+        ap.error("--export-only needs --export-features DIR")
 
 
 def write_dataset(ds, path) -> Path:

@@ -333,22 +333,6 @@ def model_card(results: dict, command: str) -> str:
     return card.render()
 
 
-def add_table_args(ap) -> None:
-    """``--features``, ``--test-features``, ``--export-features``, ``--export-only``."""
-    g = ap.add_argument_group("feature tables (Parquet; instead of bags / KITTI)")
-    g.add_argument("--features", action="append", default=None, metavar="PATH",
-                   help="training feature tables: a file, a directory tree of *.parquet "
-                        "(Hive partitions too) or a glob; repeatable. Replaces --train / "
-                        "--kitti-root; the tables' settings are used")
-    g.add_argument("--test-features", action="append", default=None, metavar="PATH",
-                   help="held-out feature tables (same forms; repeatable)")
-    g.add_argument("--export-features", type=Path, default=None, metavar="DIR",
-                   help="write the datasets as feature tables: DIR/train/lmd_<mode>.parquet, "
-                        "DIR/test/lmd_<mode>.parquet")
-    g.add_argument("--export-only", action="store_true",
-                   help="with --export-features: write the tables and stop (no training)")
-
-
 def _table_settings(ds: LmdDataset):
     """The ``LmdSettings`` a table's dataset was made with (to read bags alike)."""
     rec = dict(ds.info.get("settings") or {})
@@ -414,7 +398,9 @@ def _print_table_counts(label: str, sets: dict | None) -> None:
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(prog="lmd-train", description=__doc__.split("\n\n")[0])
     add_source_args(ap)
-    add_table_args(ap)
+    feature_table.add_table_arguments(
+        ap, instead_of="--train / --kitti-root", test=True,
+        export_to="DIR/train/lmd_<mode>.parquet, DIR/test/lmd_<mode>.parquet")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="model directory")
     ap.add_argument("--modes", nargs="+", choices=MODES, default=None,
                     help="proposal modes to train (default: all three; with --features: "
@@ -427,8 +413,7 @@ def main(argv=None) -> int:
     add_scheduler_option(ap)
     ap.add_argument("--no-model-card", action="store_true")
     args = ap.parse_args(argv)
-    if args.export_only and args.export_features is None:
-        ap.error("--export-only needs --export-features DIR")
+    feature_table.check_table_arguments(ap, args)
     command = "lmd-train " + " ".join(shlex.quote(a) for a in
                                       (sys.argv[1:] if argv is None else list(argv)))
     try:

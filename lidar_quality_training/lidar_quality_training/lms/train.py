@@ -383,13 +383,8 @@ def main(argv=None) -> int:
     ap.add_argument("--data", type=Path, nargs="+", default=None,
                     help="perception bag(s), directories of bags or SemanticKITTI-style roots "
                          "(default: data/perception/meta_train)")
-    ap.add_argument("--features", action="append", default=None, metavar="PATH",
-                    help="feature tables instead of --data: a Parquet file, a directory tree "
-                         "of *.parquet (Hive partitions too) or a glob; repeatable")
-    ap.add_argument("--export-features", type=Path, default=None, metavar="DIR",
-                    help="write the dataset as DIR/lms_<ring source>.parquet")
-    ap.add_argument("--export-only", action="store_true",
-                    help="with --export-features: write the table and stop (no training)")
+    feature_table.add_table_arguments(ap, instead_of="--data",
+                                      export_to="DIR/lms_<ring source>.parquet")
     ap.add_argument("--out", type=Path, default=Path("models/lms"))
     ap.add_argument("--kind", choices=meta_model.KINDS, default="xgboost")
     ap.add_argument("--cv-folds", "--folds", dest="folds", type=meta_model.cv_folds_arg,
@@ -398,8 +393,7 @@ def main(argv=None) -> int:
     add_scheduler_option(ap)
     add_data_arguments(ap)
     a = ap.parse_args(argv)
-    if a.export_only and a.export_features is None:
-        ap.error("--export-only needs --export-features DIR")
+    feature_table.check_table_arguments(ap, a)
     command = "lms-train " + " ".join(shlex.quote(x) for x in (sys.argv[1:] if argv is None
                                                                  else argv))
     try:

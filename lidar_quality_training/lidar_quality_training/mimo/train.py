@@ -255,13 +255,8 @@ def add_data_arguments(p: argparse.ArgumentParser, default_data: str | None) -> 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="mimo-train", description=__doc__.split("\n\n")[0])
     add_data_arguments(p, None)
-    p.add_argument("--features", action="append", default=None, metavar="PATH",
-                   help="feature tables instead of --data: a Parquet file, a directory tree "
-                        "of *.parquet (Hive partitions too) or a glob; repeatable")
-    p.add_argument("--export-features", type=Path, default=None, metavar="DIR",
-                   help="write the dataset as DIR/mimo_points.parquet")
-    p.add_argument("--export-only", action="store_true",
-                   help="with --export-features: write the table and stop (no training)")
+    feature_table.add_table_arguments(p, instead_of="--data",
+                                      export_to="DIR/mimo_points.parquet")
     p.add_argument("--out", default="models/mimo", help="model directory")
     p.add_argument("--kind", default="xgboost", choices=meta_model.KINDS)
     p.add_argument("--cv-folds", "--folds", dest="folds", type=meta_model.cv_folds_arg,
@@ -269,8 +264,7 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     add_scheduler_option(p)
     a = p.parse_args(argv)
-    if a.export_only and a.export_features is None:
-        p.error("--export-only needs --export-features DIR")
+    feature_table.check_table_arguments(p, a)
     command = "mimo-train " + " ".join(shlex.quote(x) for x in (argv if argv is not None
                                                                else sys.argv[1:]))
     try:
