@@ -74,43 +74,29 @@ def rank(df, k: int) -> dict:
 def _gt_boxes(source: str, key: str) -> np.ndarray:
     """The labels of the frame with header stamp ``key`` in the bag (none: (0, 7))."""
     from lidar_quality_core.boxes import detections_to_arrays
-    from lidar_quality_ros.bag_io import bag_topics, read_bag
+    from lidar_quality_ros.bag_io import bag_topics
     from lidar_quality_ros.perception_bag import topic_of
+    from lidar_quality_training.lmd.annotation_review import frame_message
 
     topic = topic_of("gt_objects")
-    if topic not in bag_topics(source):
+    msg = frame_message(source, topic, int(key)) if topic in bag_topics(source) else None
+    if msg is None:
         return np.zeros((0, 7))
-    stamp = int(key)
-    for m in read_bag(source, {topic}, start_ns=max(stamp - 2_000_000_000, 0)):
-        msg = m.decode()
-        if msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec == stamp:
-            a = detections_to_arrays(msg)
-            return a.boxes[a.valid]
-    return np.zeros((0, 7))
-
-
-def _draw(ax, boxes, **kw) -> None:
-    from lidar_quality_core.box_geometry import bev_corners
-
-    for c in bev_corners(np.asarray(boxes, dtype=float).reshape(-1, 7)):
-        ring = np.vstack([c, c[:1]])
-        ax.plot(ring[:, 0], ring[:, 1], **kw)
+    a = detections_to_arrays(msg)
+    return a.boxes[a.valid]
 
 
 BOX = ["box_x", "box_y", "box_z", "box_l", "box_w", "box_h", "box_yaw"]
 
 
 def _panel(ax, row, xyz, others, labels, radius: float) -> None:
+    from lidar_quality_training.lmd.annotation_review import draw_boxes, draw_points
+
     cx, cy = row["box_x"], row["box_y"]
-    near = (np.abs(xyz[:, 0] - cx) < radius) & (np.abs(xyz[:, 1] - cy) < radius)
-    p = xyz[near]
-    if len(p):
-        lo, hi = np.percentile(p[:, 2], [5, 99])
-        ax.scatter(p[:, 0], p[:, 1], s=0.8, c=p[:, 2], cmap="Greys",
-                   vmin=lo - 0.3 * (hi - lo), vmax=hi, linewidths=0)
-    _draw(ax, others, color="#999999", lw=0.8)
-    _draw(ax, labels, color="#7b2cbf", lw=1.2)
-    _draw(ax, row[BOX].to_numpy(float), color="#e63946", lw=1.4)
+    draw_points(ax, xyz, cx, cy, radius)
+    draw_boxes(ax, others, color="#999999", lw=0.8)
+    draw_boxes(ax, labels, color="#7b2cbf", lw=1.2)
+    draw_boxes(ax, row[BOX].to_numpy(float), color="#e63946", lw=1.4)
     ax.set_xlim(cx - radius, cx + radius)
     ax.set_ylim(cy - radius, cy + radius)
     ax.set_aspect("equal")

@@ -159,6 +159,12 @@ class Runner:
     run: Callable
     processor: object = None  # its ``transforms`` are set per bag (/tf_static, /tf)
 
+    def model_ids(self) -> dict:
+        """``{"confidence": id, "iou": id}`` of the processor's meta models."""
+        models = getattr(self.processor, "models", None)
+        return {"confidence": getattr(models, "confidence_model_id", ""),
+                "iou": getattr(models, "iou_model_id", "")}
+
 
 def _lmd(p: dict, topics: dict) -> Runner:
     from lmd_ros.pipeline import LmdProcessor
@@ -236,15 +242,10 @@ def _mimo(p: dict, names: dict) -> Runner:
     return Runner("mimo", topics, (), run, processor=proc)
 
 
-def build_runners(nodes=tuple(NODES), params: dict | None = None,
-                  topics: dict | None = None) -> list[Runner]:
-    """Runners of ``nodes`` with their settings and models; ``params``: ``{"lmd.name":
-    value}`` or ``{"lmd": {"name": value}}``; ``topics``: input key -> bag topic (``--topic``,
-    unnamed keys keep the default names). Raises ``UsageError`` for anything bad."""
-    try:
-        topics = parse_topic_options([f"{k}={v}" for k, v in (topics or {}).items()])
-    except ValueError as exc:
-        raise UsageError(str(exc)) from None
+def nodes_parameters(nodes, params: dict | None = None) -> dict:
+    """node -> its full parameter values (``node_parameters``) for each of ``nodes``, with
+    ``params`` (``{"lmd.name": value}`` or ``{"lmd": {"name": value}}``) applied; bad names
+    and parameters of nodes not in ``nodes`` raise ``UsageError``."""
     unknown = [n for n in nodes if n not in NODES]
     if unknown or not nodes:
         raise UsageError(f"unknown node(s) {unknown or '(none given)'}: choose from "
@@ -259,11 +260,23 @@ def build_runners(nodes=tuple(NODES), params: dict | None = None,
     for node, over in per_node.items():
         if over and node not in nodes:
             raise UsageError(f"parameters given for {node}, which is not in --nodes")
+    return {n: node_parameters(n, per_node[n]) for n in nodes}
+
+
+def build_runners(nodes=tuple(NODES), params: dict | None = None,
+                  topics: dict | None = None) -> list[Runner]:
+    """Runners of ``nodes`` with their settings and models; ``params``: ``{"lmd.name":
+    value}`` or ``{"lmd": {"name": value}}``; ``topics``: input key -> bag topic (``--topic``,
+    unnamed keys keep the default names). Raises ``UsageError`` for anything bad."""
+    try:
+        topics = parse_topic_options([f"{k}={v}" for k, v in (topics or {}).items()])
+    except ValueError as exc:
+        raise UsageError(str(exc)) from None
     make = {"lmd": _lmd, "lms": _lms, "mimo": _mimo}
     runners = []
-    for n in nodes:
+    for n, values in nodes_parameters(nodes, params).items():
         try:
-            runners.append(make[n](node_parameters(n, per_node[n]), topics))
+            runners.append(make[n](values, topics))
         except UsageError:
             raise
         except (ValueError, TypeError) as exc:  # settings' validation, MergeConfig

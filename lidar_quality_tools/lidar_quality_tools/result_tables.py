@@ -141,7 +141,6 @@ class ResultRows:
         cls = np.asarray(res.segment_class)[ids].astype(np.int64)
         names = res.class_names or ()
         label = [names[c] if 0 <= c < len(names) else str(c) for c in cls.tolist()]
-        self.meta["lms"]["feature_names"] = list(res.names)
         return {"frame_id": _text([_frame_id(getattr(out.segments, "header", None))] * n, n),
                 "index": ids.astype(np.int32), "segment_class": cls, "label": _text(label, n),
                 "size": np.asarray(res.size)[ids].astype(np.int64),
@@ -185,16 +184,14 @@ def _settings_json(settings) -> dict:
 
 def _meta(runner) -> dict:
     """The table metadata of a runner's node: method, mode, features, settings, models."""
-    proc = runner.processor
-    s = getattr(proc, "settings", None)
-    models = getattr(proc, "models", None)
-    ids = {"confidence": getattr(models, "confidence_model_id", ""),
-           "iou": getattr(models, "iou_model_id", "")}
+    s = runner.processor.settings
+    ids = runner.model_ids()
     if runner.name == "lmd":
         mode, names = s.proposal_mode, list(s.feature_names())
     elif runner.name == "mimo":
         mode, names = "points" if s.use_points else "no_points", list(s.feature_names())
-    else:   # where the image rows come from; the metric names come with the first frame
-        mode, names = ("points" if "points" in runner.topics else "segmentation"), []
+    else:   # the mode: where the image rows come from
+        mode = "points" if "points" in runner.topics else "segmentation"
+        names = list(s.metric_names())
     return {"method": runner.name, "mode": mode, "feature_names": names,
             "settings": _settings_json(s), "models": ids}

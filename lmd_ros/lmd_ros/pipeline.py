@@ -497,7 +497,7 @@ class LmdProcessor:
                                intensity=self.intensity)
         conf, iou = self.models.predict(frame.features)
         n = len(frame.detections)
-        verdict = self.domain(frame_quantities(frame, self.settings.feature_names()))
+        verdict = self.domain(frame_quantities(frame, self.models.feature_names))
         if verdict.passthrough:     # out of the models' domain: the detector's own score
             conf = np.where(frame.valid, frame.detections.scores, np.nan)
             iou = np.full(n, np.nan)

@@ -598,7 +598,7 @@ def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, mode
     conf, iou = models.predict(frame.features)
     verdict = None
     if domain is not None:
-        verdict = domain(frame_quantities(frame, settings.feature_names()))
+        verdict = domain(frame_quantities(frame, models.feature_names))
         if verdict.passthrough:
             conf, iou = frame.merge.scores.astype(np.float64), np.full(len(conf), np.nan)
     kept, removed = (thresholds or ConfidenceThresholds()).keep(

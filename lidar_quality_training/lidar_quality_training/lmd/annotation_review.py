@@ -45,7 +45,8 @@ from lidar_quality_core.iou import iou_bev
 from .dataset import TP_IOU, LmdDataset
 
 __all__ = ["NEAR_IOU", "RANKINGS", "InjectedErrors", "inject_errors", "targets_against",
-           "ReviewResult", "review", "precision_at_k", "export", "load_points", "thumbnails",
+           "ReviewResult", "review", "precision_at_k", "export", "load_points",
+           "frame_message", "draw_points", "draw_boxes", "thumbnails",
            "main"]
 
 NEAR_IOU = 0.1
@@ -246,21 +247,39 @@ def load_points(source: str, key: str, points_topic: str = "/lidar/points") -> n
     if source.endswith(".bin"):
         xyz = np.fromfile(source, dtype="<f4").reshape(-1, 4)[:, :3]
         return xyz[finite_mask(xyz)]
+    msg = frame_message(source, points_topic, int(key))
+    if msg is None:
+        raise KeyError(f"{source}: no {points_topic} message with stamp {key}")
+    xyz, _ = xyz_intensity(msg)
+    return xyz[finite_mask(xyz)]
+
+
+def frame_message(bag: str, topic: str, stamp: int):
+    """The decoded ``topic`` message of ``bag`` with header stamp ``stamp`` [ns], or None."""
     from lidar_quality_ros.bag_io import read_bag
 
-    stamp = int(key)
-    # Recorders log a scan shortly after its stamp: seek near it, then the whole bag.
+    # Recorders log a message shortly after its stamp: seek near it, then the whole bag.
     for start in (max(stamp - 2_000_000_000, 0), None):
-        for m in read_bag(source, topics={points_topic}, start_ns=start):
+        for m in read_bag(bag, topics={topic}, start_ns=start):
             msg = m.decode()
-            st = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
-            if st == stamp:
-                xyz, _ = xyz_intensity(msg)
-                return xyz[finite_mask(xyz)]
-    raise KeyError(f"{source}: no {points_topic} message with stamp {stamp}")
+            if msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec == stamp:
+                return msg
+    return None
 
 
-def _draw_boxes(ax, boxes, **kw):
+def draw_points(ax, xyz, cx: float, cy: float, radius: float) -> None:
+    """The cloud's points within ``radius`` of (cx, cy), grey by height, ground pale (objects
+    stand out without a ground model)."""
+    near = (np.abs(xyz[:, 0] - cx) < radius) & (np.abs(xyz[:, 1] - cy) < radius)
+    p = xyz[near]
+    if len(p):
+        lo, hi = np.percentile(p[:, 2], [5, 99])
+        ax.scatter(p[:, 0], p[:, 1], s=0.8, c=p[:, 2], cmap="Greys", vmin=lo - 0.3 * (hi - lo),
+                   vmax=hi, linewidths=0)
+
+
+def draw_boxes(ax, boxes, **kw):
+    """BEV outlines of (n, 7) boxes."""
     from lidar_quality_core.box_geometry import bev_corners
 
     for c in bev_corners(np.asarray(boxes, dtype=float).reshape(-1, 7)):
@@ -270,17 +289,11 @@ def _draw_boxes(ax, boxes, **kw):
 
 def _panel(ax, ds, i, xyz, given_boxes, clean_bad, rec, radius):
     cx, cy = ds.box[i, 0], ds.box[i, 1]
-    near = (np.abs(xyz[:, 0] - cx) < radius) & (np.abs(xyz[:, 1] - cy) < radius)
-    p = xyz[near]
-    if len(p):
-        # grey by height, ground pale: objects stand out without a ground model
-        lo, hi = np.percentile(p[:, 2], [5, 99])
-        ax.scatter(p[:, 0], p[:, 1], s=0.8, c=p[:, 2], cmap="Greys", vmin=lo - 0.3 * (hi - lo),
-                   vmax=hi, linewidths=0)
-    _draw_boxes(ax, given_boxes, color="#7b2cbf", lw=1.2)
-    _draw_boxes(ax, ds.box[i], color="#e63946", lw=1.4)
+    draw_points(ax, xyz, cx, cy, radius)
+    draw_boxes(ax, given_boxes, color="#7b2cbf", lw=1.2)
+    draw_boxes(ax, ds.box[i], color="#e63946", lw=1.4)
     if clean_bad is not None and len(clean_bad):
-        _draw_boxes(ax, clean_bad, color="#2a9d8f", lw=1.4, ls="--")
+        draw_boxes(ax, clean_bad, color="#2a9d8f", lw=1.4, ls="--")
     ax.set_xlim(cx - radius, cx + radius)
     ax.set_ylim(cy - radius, cy + radius)
     ax.set_aspect("equal")
