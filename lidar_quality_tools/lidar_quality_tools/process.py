@@ -622,11 +622,14 @@ def process_one(in_bag: Path, out_bag: Path | None, runners, *, results: Path | 
     rows = gt = None
     if results is not None:
         gt = {k: topic_of(k, topics) for k in ("gt_objects", "points_gt")}
-        rows = ResultRows(runners, source=str(in_bag), group=bag_group(in_bag), gt_topics=gt)
+        rows = ResultRows(runners, source=str(in_bag), group=bag_group(in_bag), gt_topics=gt,
+                          warn=lambda text: print(f"process_bag: {in_bag.name}: warning: "
+                                                  f"{text}", file=sys.stderr))
     summary = _run(in_bag, out_bag, runners, progress=progress, window=window,
                    collect=rows.collect if rows else None, on_frame=on_frame,
                    extra_topics=tuple(gt.values()) if gt else ())
     files = {}
+    summary["results_issues"] = dict(rows.issues) if rows is not None else {}
     if rows is not None:
         for node, table in rows.tables().items():
             path = Path(results) / node / f"bag={name or in_bag.name}" / f"{part}.parquet"

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from collections import Counter
 
 import numpy as np
 from lidar_quality_training.feature_table import FEATURE_PREFIX, schema_metadata, write_table
@@ -46,13 +47,24 @@ def _text(values, n) -> np.ndarray:
 
 class ResultRows:
     """Collects the rows of one bag (or slice): ``collect(node, frame, outputs)`` is the
-    hook of ``process._run``; ``tables()`` gives one pyarrow Table per node with rows."""
+    hook of ``process._run``; ``tables()`` gives one pyarrow Table per node with rows.
+    Ground truth that is there but cannot be used (undecodable, another cloud) leaves the
+    frame's targets NaN: counted by cause in ``issues``, and ``warn(text)`` called the
+    first time of each cause."""
 
-    def __init__(self, runners, *, source: str, group: str, gt_topics: dict | None = None):
+    def __init__(self, runners, *, source: str, group: str, gt_topics: dict | None = None,
+                 warn=None):
         self.source, self.group = str(source), group
         self.gt = dict(gt_topics or {})          # "gt_objects" / "points_gt" -> topic
         self.parts: dict[str, list[dict]] = {r.name: [] for r in runners}
         self.meta = {r.name: _meta(r) for r in runners}
+        self.issues: Counter = Counter()
+        self.warn = warn
+
+    def _unusable(self, cause: str, text: str) -> None:
+        self.issues[cause] += 1
+        if self.issues[cause] == 1 and self.warn is not None:
+            self.warn(f"{text}: targets NaN (counted as results_issues.{cause})")
 
     def collect(self, node: str, frame, out) -> None:
         rows = {"lmd": self._lmd, "mimo": self._mimo, "lms": self._lms}[node](frame, out)
@@ -68,7 +80,8 @@ class ResultRows:
             return None
         try:
             return frame.get(topic)
-        except Exception:  # noqa: BLE001 - undecodable ground truth: rows without targets
+        except Exception as exc:  # noqa: BLE001 - undecodable ground truth: no targets
+            self._unusable(f"undecodable_{key}", f"{topic} not decoded ({exc})")
             return None
 
     def _box_targets(self, frame, boxes, scores, labels, ok):
@@ -136,8 +149,9 @@ class ResultRows:
             try:
                 gt = read_fields(gt_msg, ["label"], dtype=np.int64)[:, 0]
                 iou, iou_adj = segment_targets(res, gt, ignore_label=IGNORE_LABEL)
-            except (ValueError, KeyError):   # another cloud (point count) or no label field
-                pass
+            except (ValueError, KeyError) as exc:   # another cloud, or no label field
+                self._unusable("points_gt_mismatch", f"{self.gt['points_gt']} does not "
+                               f"label the segmented cloud ({exc})")
         cls = np.asarray(res.segment_class)[ids].astype(np.int64)
         names = res.class_names or ()
         label = [names[c] if 0 <= c < len(names) else str(c) for c in cls.tolist()]

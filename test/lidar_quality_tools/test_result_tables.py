@@ -133,3 +133,35 @@ def test_tables_read_back_as_the_dataset_builders_rows(run):
     assert len(mimo) == len(built) > 0
     assert np.allclose(mimo.m_iou_any, built.m_iou_any)
     assert np.allclose(mimo.X, built.X[:, :mimo.X.shape[1]], equal_nan=True)
+
+
+def test_unusable_ground_truth_is_said_once_and_counted(run, tmp_path, capsys):
+    """A ground-truth cloud that does not label the segmented cloud (another point count):
+    LMS targets NaN, one warning naming the topic, every frame counted."""
+    from lidar_quality_core.pointcloud import create_cloud
+    from lidar_quality_ros.bag_io import BagWriter, bag_info
+
+    bag, _, _, _ = run
+    info = bag_info(bag)
+    other = tmp_path / "short_gt"
+    with BagWriter(other) as w:
+        for m in read_bag(bag):
+            t = info.topics[m.topic]
+            if m.topic == "/lidar/points_gt":
+                gt = m.decode()
+                short = create_cloud(gt.header, {"x": np.zeros(10, np.float32),
+                                                 "y": np.zeros(10, np.float32),
+                                                 "z": np.zeros(10, np.float32),
+                                                 "label": np.ones(10, np.uint32)})
+                w.write(m.topic, m.msgtype, m.stamp_ns, short, qos=t.qos)
+            else:
+                w.write(m.topic, m.msgtype, m.stamp_ns, m.raw, qos=t.qos, source=t)
+    from lidar_quality_tools.process import process_bag
+
+    res = tmp_path / "res"
+    s = process_bag(other, tmp_path / "out", nodes="lms", progress=False, results=res)
+    err = capsys.readouterr().err
+    assert err.count("/lidar/points_gt does not label the segmented cloud") == 1
+    assert s["results_issues"] == {"points_gt_mismatch": 2}          # both frames
+    lms = pq.read_table(res / "lms" / "bag=short_gt" / "part-0000.parquet").to_pandas()
+    assert len(lms) and lms["iou_adj"].isna().all() and lms["confidence"].notna().any()
