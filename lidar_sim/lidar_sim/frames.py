@@ -15,6 +15,7 @@ from typing import Iterator
 
 import numpy as np
 
+from .scene import SceneConfig, scene_config
 from .sensor import SensorConfig, hdl64
 from .sequence import generate_sequence
 from .simulate import SimFrame, simulate_frame
@@ -64,10 +65,16 @@ def _load(path: Path) -> SimFrame:
 
 
 def sequence_frames(seed: int, n_frames: int, *, sequence: int = 0,
-                    cfg: SensorConfig | None = None) -> Iterator[SimFrame]:
-    """Simulate the frames of one sequence with scene / noise seed ``seed``."""
+                    cfg: SensorConfig | None = None,
+                    scene: str | SceneConfig | None = None) -> Iterator[SimFrame]:
+    """Simulate the frames of one sequence with scene / noise seed ``seed``.
+
+    ``cfg``: the sensor (default HDL-64); ``scene``: a scene type name of
+    :data:`~lidar_sim.scene.SCENE_TYPES` ("street", "suburban"), a ``SceneConfig``, or
+    None for the default street (the one the splits use).
+    """
     cfg = cfg or hdl64()
-    seq = generate_sequence(seed, n_frames)
+    seq = generate_sequence(seed, n_frames, scene_config(scene))
     rng = np.random.default_rng(seed)
     for i in range(n_frames):
         yield simulate_frame(seq.frame(i, max_range=cfg.max_range), cfg, rng, sequence=sequence)

@@ -1,10 +1,12 @@
 """Bird's-eye-view picture of a simulated frame (a PNG for eyeballing the world).
 
     python -m lidar_sim.render --seed 7000 --frame 0 --out docs/sim_bev.png
+    python -m lidar_sim.render --seed 7000 --scene suburban --out /tmp/suburban.png
 
 ``--seed`` is a sequence seed (split ``demo``'s first sequence is 7000); the frame is the
-one ``lidar_sim.frames.sequence_frames(seed, frames)`` yields, i.e. the one the datasets
-hold. matplotlib is imported only when rendering (Agg canvas, no display needed).
+one ``lidar_sim.frames.sequence_frames(seed, frames, scene=scene)`` yields, i.e. with the
+default scene type the one the datasets hold. matplotlib is imported only when rendering
+(Agg canvas, no display needed).
 """
 from __future__ import annotations
 
@@ -16,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from . import classes as C
+from .scene import SCENE_TYPES
 
 BOX_COLOR = (0.1, 0.1, 0.1)
 #: share of white mixed into the ground classes' colours: the ground holds half the
@@ -113,6 +116,8 @@ def main(argv=None) -> int:
     ap.add_argument("--frame", type=int, default=0, help="frame index in the sequence")
     ap.add_argument("--frames", type=int, default=100,
                     help="sequence length the drive is planned over (demo split: 100)")
+    ap.add_argument("--scene", choices=list(SCENE_TYPES), default="street",
+                    help="scene type (lidar_sim.scene.SCENE_TYPES; the datasets: street)")
     ap.add_argument("--out", type=Path, default=Path("sim_bev.png"))
     ap.add_argument("--extent", type=float, default=60.0, help="half length of the view in x (m)")
     ap.add_argument("--y-extent", type=float, default=None,
@@ -124,9 +129,12 @@ def main(argv=None) -> int:
     from .frames import sequence_frames
 
     # the noise generator advances frame by frame: simulate up to the one asked for
-    f = next(itertools.islice(sequence_frames(args.seed, args.frames), args.frame, None))
+    f = next(itertools.islice(sequence_frames(args.seed, args.frames, scene=args.scene),
+                              args.frame, None))
+    name = f"seed {args.seed} frame {args.frame}"
     out = render_bev(f, args.out, extent=args.extent, y_extent=args.y_extent,
-                     size_px=args.size, name=f"seed {args.seed} frame {args.frame}")
+                     size_px=args.size,
+                     name=name if args.scene == "street" else f"{args.scene} {name}")
     print(f"wrote {out} ({out.stat().st_size / 1024:.0f} kB): {len(f.xyz)} points, "
           f"{len(f.gt_boxes)} objects")
     return 0

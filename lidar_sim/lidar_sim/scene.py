@@ -18,10 +18,16 @@ thing, the ego and the poles / trunks at every frame time.
 Each thing has a ground-truth box ``(x, y, z, l, w, h, yaw)`` (z = box centre, bottom on
 the ground) and is made of part boxes (body, cabin, tyres, legs, head, ...) inside it.
 Stuff (ground, buildings, fences, vegetation, trunks, poles, signs) has instance 0.
+
+``SCENE_TYPES`` names configurations of this one generator: "street" (the default
+``SceneConfig()``, buildings close to the sidewalk) and "suburban" (houses far back behind
+hedged front yards, wide gaps of grass, bushes and trees between them).
 """
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
+from types import MappingProxyType
 from typing import NamedTuple
 
 import numpy as np
@@ -31,7 +37,7 @@ from . import classes as C
 from .primitives import Primitives
 
 __all__ = ["SceneConfig", "Lane", "Things", "ThingState", "Scene", "generate_scene",
-           "SIZE_RANGES", "EGO_SIZE", "street_cross_section"]
+           "SIZE_RANGES", "EGO_SIZE", "street_cross_section", "SCENE_TYPES", "scene_config"]
 
 # Ranges every generated GT box size lies in: class -> ((l), (w), (h)) as (lo, hi).
 SIZE_RANGES: dict[int, tuple[tuple[float, float], ...]] = {
@@ -60,6 +66,7 @@ class SceneConfig:
     furniture_width: float = 0.7         # curb-side sidewalk strip: poles, signs, trees
     standing_width: float = 0.8          # building-side sidewalk strip: standing people
     setback_max: float = 6.0             # building front distance behind the sidewalk
+                                         # (see also setback_min, flush_building_prob)
     terrain_extent: float = 150.0        # ground regions reach |y| <= this
     # ego (drives along +x in a +x lane at constant speed; yaw 0)
     ego_speed: float = 10.0
@@ -79,9 +86,16 @@ class SceneConfig:
     standing_fraction: float = 0.25
     walk_speed_range: tuple[float, float] = (0.9, 1.6)
     crossing_pedestrians: int = 3        # attempted; kept only if collision free
-    # scenery
-    building_gap_prob: float = 0.35
-    fence_prob: float = 0.5
+    # scenery: buildings alternate with gaps (terrain, maybe fenced) along each side
+    building_gap_prob: float = 0.35     # a gap before each building
+    building_gap_range: tuple[float, float] = (4.0, 20.0)     # gap length
+    building_width_range: tuple[float, float] = (8.0, 35.0)   # frontage along the street
+    building_height_range: tuple[float, float] = (5.0, 14.0)
+    tall_building_prob: float = 0.3     # of buildings 14-30 m high instead
+    flush_building_prob: float = 0.4    # of buildings right at the sidewalk (no setback)
+    setback_min: float = 1.0            # others: setback uniform in [setback_min, setback_max]
+    fence_prob: float = 0.5             # of gaps fenced along the sidewalk
+    hedge_prob: float = 0.0             # of gaps and front yards edged by a hedge instead
     street_trees_per_100m: float = 6.0   # per side
     yard_trees_per_100m: float = 3.0     # per side
     bushes_per_100m: float = 8.0         # per side
@@ -108,6 +122,50 @@ class SceneConfig:
             raise ValueError("sidewalk too narrow for its strips")
         if self.ego_speed < 0:
             raise ValueError("ego_speed must be >= 0")
+        for name in ("building_gap_range", "building_width_range", "building_height_range"):
+            lo, hi = getattr(self, name)
+            if not 0 < lo <= hi:
+                raise ValueError(f"{name} must be (lo, hi) with 0 < lo <= hi")
+        if not 0 <= self.setback_min <= self.setback_max:
+            raise ValueError("setback must satisfy 0 <= setback_min <= setback_max")
+        for name in ("building_gap_prob", "tall_building_prob", "flush_building_prob",
+                     "fence_prob", "hedge_prob"):
+            if not 0 <= getattr(self, name) <= 1:
+                raise ValueError(f"{name} must be a probability")
+
+
+#: Named scene types. "street": the default, a town street lined with buildings close to
+#: the sidewalk. "suburban": an open, KITTI-like residential road: detached houses far back
+#: behind front yards with hedges, trees and bushes, wide grass gaps between them, cars
+#: parked along both curbs, little traffic and few pedestrians.
+SCENE_TYPES: Mapping[str, SceneConfig] = MappingProxyType({
+    "street": SceneConfig(),
+    "suburban": SceneConfig(
+        bike_lane_width=1.2, sidewalk_width=2.5,
+        moving_per_100m=1.5, truck_fraction=0.1, parked_per_100m=7.0,
+        parked_van_fraction=0.1, cyclists_per_100m=0.6, pedestrians_per_100m=1.0,
+        crossing_pedestrians=1,
+        building_gap_prob=0.9, building_gap_range=(15.0, 40.0),
+        building_width_range=(8.0, 16.0), building_height_range=(4.5, 9.0),
+        tall_building_prob=0.0, flush_building_prob=0.0, setback_min=12.0,
+        setback_max=30.0, fence_prob=0.3, hedge_prob=0.7,
+        street_trees_per_100m=8.0, yard_trees_per_100m=12.0, bushes_per_100m=30.0,
+        street_light_spacing=40.0, signs_per_100m=1.0),
+})
+
+
+def scene_config(scene: str | SceneConfig | None = None) -> SceneConfig:
+    """The :class:`SceneConfig` of a scene type name (see ``SCENE_TYPES``), a config as
+    given, or the default street for None."""
+    if scene is None:
+        return SceneConfig()
+    if isinstance(scene, SceneConfig):
+        return scene
+    try:
+        return SCENE_TYPES[scene]
+    except KeyError:
+        raise KeyError(f"unknown scene type {scene!r}; known: {', '.join(SCENE_TYPES)}") \
+            from None
 
 
 @dataclass(frozen=True)
@@ -649,6 +707,32 @@ def _tree(st: _Stuff, x, y, r, zb, rng, obstacles):
                      refl + rng.uniform(-0.03, 0.03), por)
 
 
+_HEDGE_MIN_SETBACK = 3.5   # a hedge (<= 1.6 m deep, 0.3 m off the sidewalk) fits in front
+
+
+def _hedged(cfg: SceneConfig, rng) -> bool:
+    """Whether the next gap / front yard gets a hedge (no draw when ``hedge_prob`` is 0,
+    so configurations without hedges keep their random streams)."""
+    return cfg.hedge_prob > 0 and rng.random() < cfg.hedge_prob
+
+
+def _hedge(st: _Stuff, x0: float, x1: float, side: int, sw: float, rng) -> float:
+    """A hedge along x in [x0, x1] just behind the sidewalk edge ``sw``: a row of dense,
+    overlapping vegetation ellipsoids. Returns the distance of its far side from the
+    centre line (``sw``, and no hedge, for a stretch shorter than 1 m)."""
+    if x1 - x0 < 1.0:
+        return sw
+    ry, rz = rng.uniform(0.4, 0.8), rng.uniform(0.6, 1.1)
+    d = sw + 0.3 + ry
+    refl, por = C.sample_reflectivity(rng, C.VEGETATION), rng.uniform(0.1, 0.3)
+    rx = min(1.1, 0.5 * (x1 - x0))                  # half length of one ellipsoid
+    n = int(np.ceil((x1 - x0 - 2 * rx) / 1.4)) + 1  # centres <= 1.4 m apart: they overlap
+    for xc in np.linspace(x0 + rx, x1 - rx, n):
+        st.ellipsoid([xc, side * d, rz * rng.uniform(0.85, 1.0), rx, ry, rz],
+                     refl + rng.uniform(-0.02, 0.02), por)
+    return d + ry
+
+
 def _scenery(cfg: SceneConfig, st: _Stuff, rng) -> list[tuple[float, float, float]]:
     """Buildings, fences, vegetation, poles and signs; returns low obstacle circles."""
     cs = street_cross_section(cfg)
@@ -661,18 +745,22 @@ def _scenery(cfg: SceneConfig, st: _Stuff, rng) -> list[tuple[float, float, floa
         x = rng.uniform(-5.0, 2.0)
         while x < L:
             if rng.random() < cfg.building_gap_prob:
-                gap = rng.uniform(4.0, 20.0)
+                gap = rng.uniform(*cfg.building_gap_range)
                 fence_d = None
-                if rng.random() < cfg.fence_prob:
+                if _hedged(cfg, rng):   # draws nothing unless hedge_prob > 0
+                    fence_d = _hedge(st, x + 0.3, x + gap - 0.3, side, sw, rng)
+                elif rng.random() < cfg.fence_prob:
                     fence_d = sw + rng.uniform(0.05, 0.5)
                     t, fh = rng.uniform(0.04, 0.08), rng.uniform(1.0, 1.8)
                     st.box([x + gap / 2, side * fence_d, fh / 2, gap - 0.4, t, fh, 0.0],
                            C.FENCE, C.sample_reflectivity(rng, C.FENCE))
                 green.append((x + 0.3, x + gap - 0.3, (fence_d or sw) + 0.2, sw + 12.0, False))
                 x += gap
-            width, depth = rng.uniform(8.0, 35.0), rng.uniform(8.0, 20.0)
-            height = rng.uniform(5.0, 14.0) if rng.random() < 0.7 else rng.uniform(14.0, 30.0)
-            setback = 0.0 if rng.random() < 0.4 else rng.uniform(1.0, cfg.setback_max)
+            width, depth = rng.uniform(*cfg.building_width_range), rng.uniform(8.0, 20.0)
+            height = (rng.uniform(*cfg.building_height_range)
+                      if rng.random() < 1.0 - cfg.tall_building_prob else rng.uniform(14.0, 30.0))
+            setback = (0.0 if rng.random() < cfg.flush_building_prob
+                       else rng.uniform(cfg.setback_min, cfg.setback_max))
             front = sw + setback
             refl = C.sample_reflectivity(rng, C.BUILDING)
             st.box([x + width / 2, side * (front + depth / 2), height / 2, width, depth,
@@ -687,7 +775,9 @@ def _scenery(cfg: SceneConfig, st: _Stuff, rng) -> list[tuple[float, float, floa
             fronts.append((x, x + width, front))
             if setback > 0.8:
                 d0 = sw + 0.2
-                if setback > 1.5 and rng.random() < 0.3:
+                if setback > _HEDGE_MIN_SETBACK and _hedged(cfg, rng):
+                    d0 = _hedge(st, x + 0.2, x + width - 0.2, side, sw, rng) + 0.2
+                elif setback > 1.5 and rng.random() < 0.3:
                     fh = rng.uniform(0.8, 1.4)
                     st.box([x + width / 2, side * (sw + 0.1), fh / 2, width - 0.3, 0.05, fh,
                             0.0], C.FENCE, C.sample_reflectivity(rng, C.FENCE))

@@ -72,3 +72,13 @@ def test_render_cli(tmp_path, capsys):
                  "--size", "400"]) == 0
     assert _png_size(out)[0] == (400, 400)
     assert "wrote" in capsys.readouterr().out
+
+
+def test_render_cli_scene_type(tmp_path, capsys):
+    out = tmp_path / "suburban.png"
+    assert main(["--seed", "7000", "--frames", "1", "--scene", "suburban", "--out", str(out),
+                 "--size", "300"]) == 0
+    assert _png_size(out)[0] == (300, 300)
+    with pytest.raises(SystemExit):
+        main(["--scene", "nope", "--out", str(tmp_path / "x.png")])
+    assert "invalid choice" in capsys.readouterr().err

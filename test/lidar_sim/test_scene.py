@@ -8,15 +8,27 @@ from lidar_quality_core.box_geometry import corners_3d
 from lidar_quality_core.iou import bev_intersection_area
 from lidar_sim import classes as C
 from lidar_sim.primitives import Primitives
-from lidar_sim.scene import (EGO_SIZE, SIZE_RANGES, Scene, SceneConfig, generate_scene,
-                             street_cross_section)
+from lidar_sim.scene import (EGO_SIZE, SCENE_TYPES, SIZE_RANGES, Scene, SceneConfig,
+                             generate_scene, scene_config, street_cross_section)
 
 SEEDS = range(6)
 
 
+@pytest.fixture(scope="module", params=list(SCENE_TYPES))
+def scenes(request):
+    """Scenes of each scene type (the default "street" first): the generic checks below
+    hold for every type."""
+    return [generate_scene(s, SCENE_TYPES[request.param]) for s in SEEDS]
+
+
 @pytest.fixture(scope="module")
-def scenes():
+def street():
     return [generate_scene(s) for s in SEEDS]
+
+
+@pytest.fixture(scope="module")
+def suburban():
+    return [generate_scene(s, SCENE_TYPES["suburban"]) for s in SEEDS]
 
 
 def _prims_equal(a: Primitives, b: Primitives) -> bool:
@@ -196,9 +208,9 @@ def test_yaw_follows_road(scenes):
         assert np.all(np.abs(th.boxes[:, 6]) <= np.pi)
 
 
-def test_about_40_things_within_60m(scenes):
+def test_about_40_things_within_60m(street):
     counts, by_class = [], np.zeros(C.NUM_CLASSES)
-    for sc in scenes:
+    for sc in street:
         st = sc.thing_state(0.0)
         d = np.hypot(st.boxes[:, 0] - sc.ego_x, st.boxes[:, 1] - sc.ego_y)
         counts.append(int((d <= 60).sum()))
@@ -261,7 +273,9 @@ def test_config_variants_and_validation():
                                         crossing_pedestrians=0))
     assert len(sc0.things) == 0 and len(sc0.thing_state(0.0).boxes) == 0
     for bad in (dict(lane_width=2.0), dict(ego_lane=1), dict(parking_width=1.0),
-                dict(sidewalk_width=1.5), dict(length=-1.0)):
+                dict(sidewalk_width=1.5), dict(length=-1.0), dict(setback_min=7.0),
+                dict(hedge_prob=1.5), dict(flush_building_prob=-0.1),
+                dict(building_gap_range=(5.0, 2.0)), dict(building_width_range=(0.0, 3.0))):
         with pytest.raises(ValueError):
             generate_scene(0, SceneConfig(**bad))
 
@@ -271,3 +285,93 @@ def test_ego_box():
     b = sc.ego_box(2.0)
     assert b[0] == pytest.approx(sc.ego_x + 2.0 * sc.ego_speed)
     assert tuple(b[3:6]) == EGO_SIZE and b[6] == 0.0
+
+
+# ------------------------------------------------------------------------- scene types
+
+def test_scene_types_and_lookup():
+    assert list(SCENE_TYPES) == ["street", "suburban"]
+    assert SCENE_TYPES["street"] == SceneConfig()   # the default: what the splits use
+    for cfg in SCENE_TYPES.values():
+        cfg.validate()
+    assert scene_config() == SceneConfig() and scene_config(None) == SceneConfig()
+    assert scene_config("suburban") is SCENE_TYPES["suburban"]
+    cfg = SceneConfig(length=120.0)
+    assert scene_config(cfg) is cfg
+    with pytest.raises(KeyError, match="street, suburban"):
+        scene_config("rural")
+    with pytest.raises(TypeError):
+        SCENE_TYPES["mine"] = cfg   # read-only
+
+
+def _main_buildings(sc: Scene) -> np.ndarray:
+    """Building boxes standing on the ground (not the roof structures on top)."""
+    p = sc.static
+    b = p.boxes[p.box_class == C.BUILDING]
+    return b[np.abs(b[:, 2] - b[:, 5] / 2) < 1e-9]
+
+
+def test_suburban_is_open_and_green(street, suburban):
+    cfg = SCENE_TYPES["suburban"]
+    for a, b in zip(street, suburban):
+        assert a.length == b.length
+        ba, bb = _main_buildings(a), _main_buildings(b)
+        cs = street_cross_section(b.config)
+        # houses far back behind front yards; the street has buildings at the sidewalk
+        front_a = np.abs(ba[:, 1]) - ba[:, 4] / 2 - street_cross_section(a.config)["sidewalk"]
+        front_b = np.abs(bb[:, 1]) - bb[:, 4] / 2 - cs["sidewalk"]
+        assert front_a.min() < 0.5 and np.all(front_b >= cfg.setback_min - 1e-9)
+        # street frontage built up: under half the street's, and low houses
+        assert bb[:, 3].sum() < 0.5 * ba[:, 3].sum()
+        assert bb[:, 5].max() <= cfg.building_height_range[1]
+        # vegetation: several times the street's ellipsoids (hedges, bushes, trees)
+        assert len(b.static.ellipsoids) > 3 * len(a.static.ellipsoids)
+        # parked cars along both curbs, fewer pedestrians
+        for sc in (a, b):
+            parking = [i for i, ln in enumerate(sc.lanes) if ln.kind == "parking"]
+            assert {sc.lanes[i].side for i in parking} == {-1, 1}
+            for i in parking:
+                assert np.isin(sc.things.cls[sc.things.lane == i], [C.CAR, C.TRUCK]).sum() >= 10
+    n_ped = [sum(int((sc.things.cls == C.PEDESTRIAN).sum()) for sc in scs)
+             for scs in (street, suburban)]
+    assert n_ped[1] < 0.5 * n_ped[0]   # measured 64 vs 171
+
+
+def test_vegetation_clear_of_buildings(scenes):
+    for sc in scenes:
+        p = sc.static
+        b, e = p.boxes[p.box_class == C.BUILDING], p.ellipsoids   # all axis-aligned
+        assert np.all(b[:, 6] == 0)
+        ox = (np.minimum(b[:, None, 0] + b[:, None, 3] / 2, e[None, :, 0] + e[None, :, 3])
+              - np.maximum(b[:, None, 0] - b[:, None, 3] / 2, e[None, :, 0] - e[None, :, 3]))
+        oy = (np.minimum(b[:, None, 1] + b[:, None, 4] / 2, e[None, :, 1] + e[None, :, 4])
+              - np.maximum(b[:, None, 1] - b[:, None, 4] / 2, e[None, :, 1] - e[None, :, 4]))
+        assert np.minimum(ox, oy).max() < 0
+
+
+def _hedge_pieces(sc: Scene) -> np.ndarray:
+    """Vegetation ellipsoids whose near side is 0.3 m behind the sidewalk (hedges)."""
+    e = sc.static.ellipsoids
+    sw = street_cross_section(sc.config)["sidewalk"]
+    return e[np.abs(np.abs(e[:, 1]) - e[:, 4] - (sw + 0.3)) < 1e-9]
+
+
+def test_hedges_line_the_yards(street):
+    assert all(len(_hedge_pieces(sc)) == 0 for sc in street)   # hedge_prob 0
+    cfg = dataclasses.replace(SCENE_TYPES["suburban"], hedge_prob=1.0)
+    for seed in range(3):
+        sc = generate_scene(seed, cfg)
+        h = _hedge_pieces(sc)
+        # every gap and front yard (all set back >= 12 m) is hedged instead of fenced
+        assert not np.any(sc.static.box_class == C.FENCE)
+        for side in (-1, 1):
+            hs = h[np.sign(h[:, 1]) == side]
+            # consecutive pieces overlap: the hedges run along nearly the whole street
+            x = np.arange(0.0, sc.length, 0.05)
+            covered = (np.abs(x[:, None] - hs[None, :, 0]) <= hs[None, :, 3]).any(axis=1)
+            assert covered.mean() > 0.9
+        top = h[:, 2] + h[:, 5]
+        assert np.all(h[:, 2] - h[:, 5] <= 0) and np.all((top > 1.0) & (top <= 2.2 + 1e-9))
+    # the suburban type hedges some of them
+    n = [len(_hedge_pieces(generate_scene(s, SCENE_TYPES["suburban"]))) for s in range(3)]
+    assert min(n) > 50

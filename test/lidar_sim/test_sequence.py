@@ -7,7 +7,7 @@ import pytest
 from lidar_quality_core.iou import bev_intersection_area
 from lidar_sim import classes as C
 from lidar_sim.primitives import Primitives
-from lidar_sim.scene import SceneConfig
+from lidar_sim.scene import SCENE_TYPES, SceneConfig
 from lidar_sim.sequence import (DEFAULT_START_NS, FramePrimitives, Sequence,
                                 generate_sequence)
 
@@ -15,9 +15,10 @@ N_FRAMES = 60
 FAR = 1e5  # a max_range that culls nothing
 
 
-@pytest.fixture(scope="module")
-def seq() -> Sequence:
-    return generate_sequence(3, N_FRAMES)
+@pytest.fixture(scope="module", params=list(SCENE_TYPES))
+def seq(request) -> Sequence:
+    """A drive through each scene type: every check below holds for all of them."""
+    return generate_sequence(3, N_FRAMES, SCENE_TYPES[request.param])
 
 
 def _world(f: FramePrimitives, xyz: np.ndarray) -> np.ndarray:
