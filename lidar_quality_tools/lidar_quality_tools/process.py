@@ -610,10 +610,11 @@ def no_output_reasons(nodes: dict, bag_topics: list, not_processed: dict | None 
 
 def process_one(in_bag: Path, out_bag: Path | None, runners, *, results: Path | None = None,
                 part: str = "part-0000", name: str | None = None, topics: dict | None = None,
-                window=None, progress: bool = False, on_frame=None) -> dict:
+                window=None, progress: bool = False, on_frame=None, collect=None) -> dict:
     """One bag (or the slice ``window`` of it) into ``out_bag`` (None: no output bag) and,
     with ``results``, its result tables (``result_tables``) as
-    ``results/<node>/bag=<name>/<part>.parquet``; the summary lists them (``"results"``)."""
+    ``results/<node>/bag=<name>/<part>.parquet``; the summary lists them (``"results"``).
+    ``collect(node, frame, outputs)`` sees every processed frame as well."""
     from lidar_quality_ros.perception_bag import bag_group
 
     from .result_tables import ResultRows, write_table
@@ -625,8 +626,13 @@ def process_one(in_bag: Path, out_bag: Path | None, runners, *, results: Path | 
         rows = ResultRows(runners, source=str(in_bag), group=bag_group(in_bag), gt_topics=gt,
                           warn=lambda text: print(f"process_bag: {in_bag.name}: warning: "
                                                   f"{text}", file=sys.stderr))
+    if rows is not None and collect is not None:
+        both = (rows.collect, collect)
+        collect = lambda *a: [c(*a) for c in both]  # noqa: E731 - a two-line chain
+    elif rows is not None:
+        collect = rows.collect
     summary = _run(in_bag, out_bag, runners, progress=progress, window=window,
-                   collect=rows.collect if rows else None, on_frame=on_frame,
+                   collect=collect, on_frame=on_frame,
                    extra_topics=tuple(gt.values()) if gt else ())
     files = {}
     summary["results_issues"] = dict(rows.issues) if rows is not None else {}

@@ -48,7 +48,8 @@ from lidar_quality_core.progress import Progress
 from lidar_quality_ros.perception_bag import add_topic_option, bag_group, resolve_bags
 
 __all__ = ["TP_IOU", "KITTI_TYPES", "LmdDataset", "Progress", "resolve_bags", "bag_group",
-           "load_bags", "load_kitti", "read_kitti_objects", "read_calib", "frame_calib",
+           "load_bags", "load_kitti", "dataset_from_messages",
+           "read_kitti_objects", "read_calib", "frame_calib",
            "kitti_to_lidar",
            "settings_for", "add_source_args", "settings_from_args", "load_from_args"]
 
@@ -534,6 +535,31 @@ def _read_kitti(root, split, results, proposals, ids, settings_list, group_digit
     src = {"kind": "kitti", "path": str(root), "split": split, "results": str(results),
            "proposals": None if proposals is None else str(proposals)}
     return {m: b.build({"sources": [src], "frames_without_gt": 0}) for m, b in builders.items()}
+
+
+def dataset_from_messages(frames, settings_list, *, source: dict,
+                          progress: bool = False) -> dict[str, "LmdDataset"]:
+    """``{mode: dataset}`` of in-memory frames (e.g. a simulation run without a bag):
+    ``frames`` yields ``(cloud, detections, proposals, gt_boxes, gt_labels, gt_ids, group,
+    key)`` messages and arrays; features by the node's own ``frame_features`` as for bags;
+    ``source``: the dict the datasets' ``info["sources"]`` records."""
+    from lmd_ros.pipeline import frame_features
+
+    builders = {s.proposal_mode: _Builder(s) for s in settings_list}
+    scales = {s.proposal_mode: IntensityScale(s.intensity_scale) for s in settings_list}
+    bar = Progress(f"{source.get('path', 'frames')}:", None, progress)
+    for cloud, det_msg, prop_msg, gt_boxes, gt_labels, gt_ids, group, key in frames:
+        gt_pts = _gt_points(cloud, gt_boxes)
+        for s in settings_list:
+            fr = frame_features(cloud, None if s.proposal_mode == "exact" else det_msg,
+                                None if s.proposal_mode == "none" else prop_msg, s,
+                                intensity=scales[s.proposal_mode])
+            builders[s.proposal_mode].add(fr, group, source.get("path", ""), key, gt_boxes,
+                                          gt_labels, gt_ids, gt_pts)
+        bar.update()
+    bar.close()
+    return {m: b.build({"sources": [dict(source)], "frames_without_gt": 0})
+            for m, b in builders.items()}
 
 
 def load_kitti(root, results, settings_list, *, split: str = "training", proposals=None,

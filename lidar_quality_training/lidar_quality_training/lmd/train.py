@@ -333,7 +333,7 @@ def model_card(results: dict, command: str) -> str:
     return card.render()
 
 
-def _table_settings(ds: LmdDataset):
+def dataset_settings(ds: LmdDataset):
     """The ``LmdSettings`` a table's dataset was made with (to read bags alike)."""
     rec = dict(ds.info.get("settings") or {})
     rec.pop("proposal_mode", None)
@@ -372,7 +372,7 @@ def load_data(args) -> tuple[dict, dict | None]:
                                             class_aware=args.class_aware)
         test_sets = None
         if args.test:  # bags, read with the settings the tables were made with
-            test_sets = load_from_args(args, [_table_settings(d) for d in train_sets.values()],
+            test_sets = load_from_args(args, [dataset_settings(d) for d in train_sets.values()],
                                        "test")
     else:
         train_sets = load_from_args(args, settings_from_args(args, args.modes or MODES),
