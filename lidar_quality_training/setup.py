@@ -24,6 +24,9 @@ setup(
             "lms-eval = lidar_quality_training.lms.evaluate:main",
             "mimo-train = lidar_quality_training.mimo.train:main",
             "mimo-eval = lidar_quality_training.mimo.evaluate:main",
+            "lmd-adapt = lidar_quality_training.lmd.adapt:main",
+            "lms-adapt = lidar_quality_training.lms.adapt:main",
+            "mimo-adapt = lidar_quality_training.mimo.adapt:main",
         ],
     },
 )

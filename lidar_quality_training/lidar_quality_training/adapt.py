@@ -411,7 +411,7 @@ def save_adapted(result: AdaptResult, out, prefix: str, data: AdaptData, *,
                                  "model_id": base_manifest.get("model_id"),
                                  "sources": base_td.get("sources")},
                 "adaptation": _round(result.record())}
-    for k in ("target", "tp_rule", "use_points", "class_aware"):
+    for k in ("target", "tp_rule", "use_points", "class_aware", "merge_settings"):
         if k in base_td:
             training[k] = base_td[k]
     profile = meta_model.training_profile(data.X, data.feature_names, profile_extra,
