@@ -25,6 +25,15 @@ most drifted ones are named in words by :func:`explain`, and ``level`` is OK / W
 ERROR from two thresholds. The default thresholds are the conventional PSI
 readings; they are to be calibrated on held-out in-domain frames and simulated shifts
 (issue 18's domain-shift benchmark).
+
+There is only the window's score, reported after every frame: no score of a frame alone.
+A frame holds one value of each per-frame statistic and (LMD, MIMO) typically 5-30 boxes,
+fewer than the ``min_values`` (30) a quantity needs before its PSI's noise is below the
+thresholds; one frame's values (LMS: its segments, however many) are one scene's, whose
+difference from the training mix is the ``spread`` a window is allowed; and the
+thresholds hold for windows. The nodes put the window's verdict in their quality messages
+(:meth:`DomainVerdict.message_fields`: level, score, frames, quantities, passthrough;
+``lidar_quality_msgs`` version 1).
 """
 from __future__ import annotations
 
@@ -40,7 +49,7 @@ from .parameters import param
 __all__ = ["LEVELS", "EPS", "VALUES_PER_BIN", "QuantityProfile", "DomainProfile", "psi",
            "fine_counts", "psi_counts",
            "DriftMonitor", "DriftReport", "explain", "ACTIONS", "DriftParameters",
-           "DomainCheck", "DomainVerdict"]
+           "DomainCheck", "DomainVerdict", "STATE_CONSTANTS"]
 
 LEVELS = tuple(np.linspace(0.0, 1.0, 21).round(4).tolist())   # 0, 5, ..., 100 %
 EPS = 1e-4
@@ -331,8 +340,9 @@ class DriftParameters:
         "models' domain (drift_action).", min_value=0.0)
     drift_action: str = param(
         "flag", "What an out-of-domain frame gets: flag (annotated as always, flagged in "
-        "/diagnostics) or passthrough (the detector's own score as the confidence and NaN "
-        "predicted IoU; LMS, without a detector score: NaN for both).", choices=ACTIONS)
+        "/diagnostics and the quality message's drift_level) or passthrough (the detector's "
+        "own score as the confidence and NaN predicted IoU; LMS, without a detector score: "
+        "NaN for both; the quality message says passthrough: true).", choices=ACTIONS)
 
     def validate(self) -> None:
         if self.drift_error < self.drift_warn:
@@ -340,16 +350,41 @@ class DriftParameters:
                              f"{self.drift_warn}")
 
 
+#: a verdict's ``state`` -> the quality messages' drift_level constant (lidar_quality_msgs)
+STATE_CONSTANTS = {"off": "DRIFT_OFF", "warming up": "DRIFT_WARMING_UP", "OK": "DRIFT_OK",
+                   "WARN": "DRIFT_WARN", "ERROR": "DRIFT_ERROR"}
+
+
 @dataclass
 class DomainVerdict:
     """One frame's drift for a processor's outputs: diagnostics ``values``, the warning
     text (``issue``, None when quiet), ``error`` (level ERROR) and ``passthrough`` (the
-    frame's confidences are to be replaced, ``drift_action``)."""
+    frame's confidences are to be replaced, ``drift_action``); for the quality messages
+    ``state`` (``STATE_CONSTANTS``: ``"off"`` without a profile, ``"warming up"`` before
+    the window gives a score, else the level's name), the window's ``score`` (NaN unless
+    scored), its ``frames`` and the most drifted ``quantities``."""
 
     values: dict
     issue: str | None = None
     error: bool = False
     passthrough: bool = False
+    state: str = "off"
+    score: float = math.nan
+    frames: int = 0
+    quantities: tuple = ()
+
+    def message_fields(self, message_class) -> dict:
+        """The version and drift fields of a ``lidar_quality_msgs`` quality array
+        (``message_class``: DetectionQualityArray, SegmentQualityArray or
+        ClusterUncertaintyArray, whose constants give the level), as keyword arguments.
+        The score is rounded to float32 here, as the message carries it: the message
+        equals itself after a round trip through its bytes."""
+        return {"version": message_class.MESSAGE_VERSION,
+                "drift_level": getattr(message_class, STATE_CONSTANTS[self.state]),
+                "drift_score": float(np.float32(self.score)),
+                "drift_window_frames": int(self.frames),
+                "drift_quantities": ", ".join(self.quantities),
+                "passthrough": bool(self.passthrough)}
 
 
 class DomainCheck:
@@ -376,5 +411,9 @@ class DomainCheck:
         if r.level >= WARN:
             issue = (f"inputs unlike the models' training data (drift {r.score:.2f} over "
                      f"{r.frames} frames): {r.text}")
+        scored = r.scored > 0       # else: too few frames, or too few values of each quantity
         return DomainVerdict(values, issue, r.level == ERROR,
-                             r.level == ERROR and self.action == "passthrough")
+                             r.level == ERROR and self.action == "passthrough",
+                             LEVEL_NAMES[r.level] if scored else "warming up",
+                             r.score if scored else math.nan, r.frames,
+                             tuple(k for k, _ in r.drifted))

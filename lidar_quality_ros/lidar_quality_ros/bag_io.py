@@ -13,6 +13,16 @@ writes) is read through a corrected copy of ``metadata.yaml`` in a temporary fol
 links to the bag's files; the bag itself is never changed. Messages of types without an
 rclpy class here (e.g. a driver's raw packets) are read and copied as bytes; the tools
 that decode or publish skip them with one :class:`UnknownTypes` warning per type.
+
+Older definitions of our own messages: a bag recorded with an earlier definition of a
+``lidar_quality_msgs`` type (e.g. a quality array of message version 0, before the drift
+fields) holds bytes the installed definition cannot deserialize (rclpy raises "failed to
+deserialize ROS message": they end where the appended fields begin). When the bag records
+its definition and that differs from the installed one (by RIHS01 type hash),
+:meth:`BagMessage.decode` reads the bytes by the recorded definition (rosbags) and fills
+the installed message class field by field: fields the old definition lacks keep their
+defaults (``version`` 0, ``drift_level`` DRIFT_UNKNOWN). Bags without recorded definitions
+(rosbag2 before Iron) cannot be told apart and decode as before.
 """
 from __future__ import annotations
 
@@ -160,12 +170,94 @@ class BagMessage:
     msgtype: str
     stamp_ns: int       # log time
     raw: bytes
+    #: the definition the bag recorded for ``msgtype`` when it is an older one of a
+    #: ``VERSIONED`` package ("" when it is the installed one, or unknown)
+    recorded: str = ""
 
     def decode(self):
-        """The rclpy message."""
+        """The rclpy message (of the installed definition; see the module doc for bytes
+        of an older one)."""
+        if self.recorded:
+            return decode_recorded(self.raw, self.msgtype, self.recorded)
         from rclpy.serialization import deserialize_message
 
         return deserialize_message(self.raw, message_class(self.msgtype))
+
+
+#: message packages of ours whose definitions change between versions: bags recorded with
+#: an older definition are read by it (module doc)
+VERSIONED = ("lidar_quality_msgs/",)
+
+
+@lru_cache(maxsize=None)
+def _installed_hash(msgtype: str) -> str:
+    try:
+        return typestore().hash_rihs01(msgtype)
+    except Exception:  # noqa: BLE001 - rosbags raises several kinds for an unknown type
+        return ""
+
+
+@lru_cache(maxsize=16)
+def _recorded_store(msgtype: str, msgdef: str):
+    """A typestore holding ``msgtype`` as ``msgdef`` (with its dependencies) defines it."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.EMPTY)
+    store.register(get_types_from_msg(msgdef, msgtype))
+    return store
+
+
+def older_definition(msgtype: str, msgdef: str, digest: str = "") -> bool:
+    """Whether ``msgdef`` (a bag's recorded definition of ``msgtype``, with its type hash
+    ``digest`` if known) is another one than the installed, for a ``VERSIONED`` type."""
+    if not msgtype.startswith(VERSIONED) or not (msgdef or "").strip():
+        return False
+    installed = _installed_hash(msgtype)
+    try:
+        recorded = digest or _recorded_store(msgtype, msgdef).hash_rihs01(msgtype)
+    except Exception:  # noqa: BLE001 - an unparsable recorded definition: decode as installed
+        return False
+    return bool(installed) and recorded != installed
+
+
+def recorded_definition(conn) -> str:
+    """``conn``'s (a rosbags connection) recorded definition when ``older_definition``,
+    else "" (the installed one, none recorded, or not ours)."""
+    msgdef = getattr(getattr(conn, "msgdef", None), "data", "") or ""
+    return msgdef if older_definition(conn.msgtype, msgdef, conn.digest or "") else ""
+
+
+def decode_recorded(raw: bytes, msgtype: str, msgdef: str):
+    """The installed rclpy message of ``raw`` serialized with the definition ``msgdef``:
+    fields by name, those ``msgdef`` lacks at their defaults."""
+    return _to_rclpy(_recorded_store(msgtype, msgdef).deserialize_cdr(raw, msgtype),
+                     message_class(msgtype))
+
+
+def _message_type(kind: str) -> tuple[str, bool]:
+    """(element type, is a sequence or array) of an rclpy field type string."""
+    if kind.startswith("sequence<"):
+        return kind[len("sequence<"):-1].split(",")[0].strip(), True
+    if kind.endswith("]"):
+        return kind[:kind.index("[")], True
+    return kind, False
+
+
+def _to_rclpy(obj, cls):
+    msg = cls()
+    for name, kind in cls.get_fields_and_field_types().items():
+        if not hasattr(obj, name):
+            continue        # not in the recorded definition: the installed default
+        value = getattr(obj, name)
+        base, many = _message_type(kind)
+        if "/" in base:     # a message, or a sequence / array of them
+            pkg, _, typ = base.partition("/")
+            sub = message_class(f"{pkg}/msg/{typ}")
+            value = [_to_rclpy(v, sub) for v in value] if many else _to_rclpy(value, sub)
+        elif hasattr(value, "tolist"):   # rosbags' numpy arrays of primitives
+            value = value.tolist()
+        setattr(msg, name, value)
+    return msg
 
 
 def bag_topics(path: Path | str) -> dict[str, str]:
@@ -182,8 +274,12 @@ def read_bag(path: Path | str, topics=None, *, start_ns: int | None = None,
         conns = _storage_connections(r, topics)
         if not conns:  # rosbags reads every topic when given no connection
             return
+        recorded: dict = {}
         for conn, stamp, raw in r.messages(connections=conns, start=start_ns, stop=stop_ns):
-            yield BagMessage(conn.topic, conn.msgtype, int(stamp), bytes(raw))
+            key = (conn.id, conn.topic, conn.msgtype)
+            if key not in recorded:
+                recorded[key] = recorded_definition(conn)
+            yield BagMessage(conn.topic, conn.msgtype, int(stamp), bytes(raw), recorded[key])
 
 
 @dataclass
@@ -274,7 +370,9 @@ class BagWriter:
         ``qos`` (rclpy QoSProfiles, taken at a topic's first message) are recorded as
         its offered QoS profiles. A type our typestore does not know (copied bytes) is
         recorded with the definition and hash of ``source`` (the input bag's topic), or
-        with none, as older rosbag2 versions record every topic."""
+        with none, as older rosbag2 versions record every topic; so is one of ours whose
+        ``source`` definition is an older one (``older_definition``: copied bytes of it
+        keep the definition they were written with)."""
         from rclpy.serialization import serialize_message
 
         conn = self._conns.get(topic)
@@ -292,12 +390,16 @@ class BagWriter:
 
     def _add(self, topic, msgtype, qos, source):
         offered = [_qos_from_rclpy(p) for p in qos]
-        try:
-            return self._writer.add_connection(topic, msgtype, typestore=self._ts,
-                                               offered_qos_profiles=offered)
-        except Exception:  # noqa: BLE001 - rosbags raises several kinds for an unknown type
-            pass
+        older = source is not None and older_definition(msgtype, source.msgdef, source.digest)
+        if not older:
+            try:
+                return self._writer.add_connection(topic, msgtype, typestore=self._ts,
+                                                   offered_qos_profiles=offered)
+            except Exception:  # noqa: BLE001 - rosbags raises several kinds for an unknown type
+                pass
         msgdef, digest = (source.msgdef, source.digest) if source else ("", "")
+        if older and not digest:
+            digest = _recorded_store(msgtype, msgdef).hash_rihs01(msgtype)
         # rosbags insists on a hash; the metadata then records the source's ("" if none)
         conn = self._writer.add_connection(topic, msgtype, msgdef=msgdef,
                                            rihs01=digest or "unknown",

@@ -7,7 +7,10 @@
 IN: a bag, a folder of bags, a glob (``'fleet/**/drive_*'``) or a text file listing them
 (one per line, ``#`` comments). One task per bag, and per ``--slice-s`` seconds of a
 longer bag (frames whose cloud is logged in the slice; default 600 s). Each task runs
-``process.process_one`` (the nodes' processors, as ``process_bag``) on a Dask worker:
+``process.process_one`` (the nodes' processors, as ``process_bag``) on a Dask worker; a
+slice after the first is preceded by a run without outputs over the frames before it (the
+nodes' largest ``drift_window``, :func:`warm_up_window`), so that the drift monitor's
+window at the slice's first frame, and with it every output, is the whole bag's:
 
     OUT/bags/<name>[/part-NNNN]            annotated output bag (one per slice; --no-bags: none)
     OUT/results/<node>/bag=<name>/part-NNNN.parquet   per-detection / per-segment rows
@@ -44,7 +47,7 @@ from pathlib import Path
 from .process import NODES, UsageError, _parse_params, build_runners, nodes_parameters
 
 __all__ = ["Task", "RunSpec", "plan_tasks", "resolve_inputs", "run_task", "process_bags",
-           "worker_environ", "local_cluster", "status_table", "main"]
+           "worker_environ", "local_cluster", "status_table", "warm_up_window", "main"]
 
 DEFAULT_SLICE_S = 600.0
 PROGRESS_TOPIC = "lq-frames"     # workers' frame events to the client's progress bar
@@ -147,6 +150,32 @@ def plan_tasks(bags: list[Path], slice_s: float | None, points_topic: str) -> li
     return tasks
 
 
+def warm_up_window(bag: Path, runners, points_topic: str, start_ns: int):
+    """``(first, start_ns)``: the log times of the last frames before ``start_ns`` that the
+    runners' processors carry over to the next (their drift monitors' windows, the largest
+    ``drift_window``), or None when there is no such frame or monitor. The clouds' log
+    times are read from a span before ``start_ns`` that grows until it holds enough."""
+    from lidar_quality_ros.bag_io import bag_info, read_bag
+
+    need = max((m.window for m in (getattr(getattr(r.processor, "domain", None), "monitor",
+                                           None) for r in runners) if m is not None),
+               default=0)
+    info = bag_info(bag)
+    t = info.topics.get(points_topic)
+    if not need or t is None or not t.count or start_ns <= info.start_ns:
+        return None
+    period = max((info.end_ns - info.start_ns) // max(t.count - 1, 1), 1)
+    span = 2 * need * period
+    while True:
+        lo = max(start_ns - span, info.start_ns)
+        stamps = [m.stamp_ns for m in read_bag(bag, {points_topic}, start_ns=lo,
+                                                stop_ns=start_ns)]
+        if len(stamps) >= need or lo == info.start_ns:
+            break
+        span *= 2
+    return (stamps[-need] if len(stamps) >= need else stamps[0], start_ns) if stamps else None
+
+
 # ----------------------------------------------------------------------- versions
 def code_version() -> dict:
     """The runtime code: a hash of its sources, and the git commit where there is one."""
@@ -214,6 +243,8 @@ def _progress_event(task_id: str, frames: int) -> None:
 def run_task(task: Task, spec: RunSpec, key: str) -> dict:
     """Process one task where it is called (a Dask worker, or this process) and write its
     outputs and status file; returns the status (failures are returned, not raised)."""
+    from lidar_quality_ros.perception_bag import topic_of
+
     from .process import process_one
 
     out = Path(spec.out)
@@ -234,6 +265,10 @@ def run_task(task: Task, spec: RunSpec, key: str) -> dict:
             if done[0] % PROGRESS_EVERY == 0:
                 _progress_event(task.id, PROGRESS_EVERY)
 
+        warm = task.window and warm_up_window(
+            Path(task.bag), runners, topic_of("points", spec.topics), task.start_ns)
+        if warm:    # the frames before the slice, no outputs: the processors' state
+            process_one(Path(task.bag), None, runners, topics=spec.topics, window=warm)
         summary = process_one(Path(task.bag), tmp_bag, runners, results=tmp / "results",
                               part=f"part-{task.part:04d}", name=task.name, topics=spec.topics,
                               window=task.window, on_frame=on_frame)

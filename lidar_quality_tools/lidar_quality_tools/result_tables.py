@@ -11,7 +11,10 @@ atomic writer), so that the table of a labelled bag trains a meta model
 (``lmd-train --features``); these tables add the nodes' outputs. Columns: ``group``
 (``bag_group``), ``source`` (the bag), ``frame_key`` (header stamp [ns] as text), ``stamp_ns``, ``frame_id``,
 ``index`` (position among the frame's items: detection index, merged index or segment
-id), the outputs ``confidence``, ``predicted_iou`` and (detections) ``kept``, the
+id), the outputs ``confidence``, ``predicted_iou`` and (detections) ``kept``, the frame's
+drift verdict as its quality message carries it (``drift_level``: off, warming up, OK,
+WARN, ERROR; ``drift_score``, NaN before a score; ``passthrough``: the confidences are the
+detector's scores, or NaN for LMS, not the meta models'), the
 features as ``feat.<name>`` in the model's order, and per method:
 
 * ``lmd`` / ``mimo``: ``det_id``, ``label``, ``score``, ``box_x`` .. ``box_yaw``, ``valid``
@@ -115,7 +118,7 @@ class ResultRows:
                 "valid": np.asarray(f.valid, bool),
                 "confidence": np.asarray(out.confidence, np.float64),
                 "predicted_iou": np.asarray(out.predicted_iou, np.float64),
-                "kept": np.asarray(out.kept, bool),
+                "kept": np.asarray(out.kept, bool), **_drift(out.quality, n),
                 "iou_any": iou_any, "iou_class": iou_class,
                 **_features(self.meta["lmd"]["feature_names"], f.features, n)}
 
@@ -133,7 +136,7 @@ class ResultRows:
                 **{c: boxes[:, j] for j, c in enumerate(BOX_COLUMNS)},
                 "confidence": np.asarray(o.confidence, np.float64),
                 "predicted_iou": np.asarray(o.predicted_iou, np.float64), "kept": kept,
-                "iou_any": iou_any, "iou_class": iou_class,
+                **_drift(o.uncertainty, n), "iou_any": iou_any, "iou_class": iou_class,
                 **_features(self.meta["mimo"]["feature_names"], fr.features, n)}
 
     def _lms(self, frame, out) -> dict:
@@ -162,6 +165,7 @@ class ResultRows:
                 "n_points": np.asarray(res.n_points)[ids].astype(np.int64),
                 "confidence": np.asarray(out.confidence, np.float64)[ids],
                 "predicted_iou": np.asarray(out.predicted_iou, np.float64)[ids],
+                **_drift(out.segments, n),
                 "iou": np.asarray(iou, np.float64), "iou_adj": np.asarray(iou_adj, np.float64),
                 **_features(res.names, res.features, n)}
 
@@ -184,6 +188,16 @@ class ResultRows:
 
 def _frame_id(header) -> str:
     return getattr(header, "frame_id", "") or ""
+
+
+def _drift(msg, n) -> dict:
+    """The drift columns of a frame's ``n`` rows from its quality array message."""
+    from lidar_quality_core.domain_profile import STATE_CONSTANTS
+
+    names = {getattr(type(msg), c): s for s, c in STATE_CONSTANTS.items()}
+    return {"drift_level": _text([names.get(msg.drift_level, "unknown")] * n, n),
+            "drift_score": np.full(n, msg.drift_score, np.float64),
+            "passthrough": np.full(n, bool(msg.passthrough))}
 
 
 def _features(names, X, n) -> dict:

@@ -24,11 +24,17 @@ Outputs (header copied from the input detections, or the proposals in exact mode
   (they stay in ``output/quality``; counted as ``removed.<class>.<bin>``).
 * ``output/quality``: DetectionQualityArray, one entry per scored detection (filtered or
   not): index and id, class, original score (top hypothesis before re-scoring),
-  confidence, predicted IoU (NaN for invalid boxes), and the two model ids.
+  confidence, predicted IoU (NaN for invalid boxes); per frame the two model ids, the
+  message ``version`` (``MESSAGE_VERSION``) and the drift monitor's verdict on the window
+  ending at the frame: ``drift_level`` (``DRIFT_OFF`` / ``DRIFT_WARMING_UP`` /
+  ``DRIFT_OK`` / ``DRIFT_WARN`` / ``DRIFT_ERROR``), ``drift_score`` (NaN before a score),
+  ``drift_window_frames``, ``drift_quantities`` and ``passthrough`` (the confidences are
+  the detector's own scores, ``drift_action: passthrough``).
 * ``output/markers``: boxes of the published detections coloured by confidence, labelled
   ``"<class> c=0.87 iou=0.62"`` (``publish_markers``; built only while subscribed).
 * ``/diagnostics``, among its values the drift of the inputs from the models' training
-  data (``drift.score``, ``drift.level``, ``drift.quantities``: ``domain_profile``;
+  data (``drift.score``, ``drift.level``, ``drift.quantities``, as in ``output/quality``:
+  ``domain_profile``;
   ``drift_warn`` / ``drift_error``; ``drift_action: passthrough`` gives an out-of-domain
   frame the detector's own scores and NaN predicted IoU).
 

@@ -533,7 +533,8 @@ class LmdProcessor:
             detections=[Q(detection_index=i, detection_id=dets.ids[i], class_id=dets.labels[i],
                           original_score=s, confidence=c, predicted_iou=u)
                         for i, (s, c, u) in enumerate(zip(dets.scores.tolist(), conf.tolist(),
-                                                          iou.tolist()))])
+                                                          iou.tolist()))],
+            **verdict.message_fields(self._QualityArray))
         mk = self.markers(frame, conf, iou, kept) if markers else None
         issues = dict(frame.issues)
         if not frame.valid.all():

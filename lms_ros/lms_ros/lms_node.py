@@ -20,11 +20,15 @@ Outputs (header copied from ``input/points``):
   segment with fewer than ``min_segment_points`` projected points; with
   ``output_all_fields`` every other field of ``input/points`` too, as received;
 * ``output/segments``: SegmentQualityArray, every segment in id order (``segment`` of
-  ``output/points`` is its id), excluded ones with NaN confidence;
+  ``output/points`` is its id), excluded ones with NaN confidence; per frame the model
+  ids, the message ``version`` and the drift monitor's verdict on the window ending at the
+  frame (``drift_level``, ``drift_score``, ``drift_window_frames``, ``drift_quantities``,
+  ``passthrough``: the segments are left unscored);
 * ``output/markers``: centroids of the scored segments coloured by confidence
   (``publish_markers``; built only while someone subscribes);
 * ``/diagnostics``, among its values the drift of the segments' metrics from the models'
-  training data (``drift.score``, ``drift.level``, ``drift.quantities``:
+  training data (``drift.score``, ``drift.level``, ``drift.quantities``, as in
+  ``output/segments``:
   ``domain_profile``; ``drift_action: passthrough`` leaves an out-of-domain frame's
   segments unscored, NaN).
 

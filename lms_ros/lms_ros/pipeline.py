@@ -79,7 +79,9 @@ Outputs (:class:`LmsProcessor`)
   (``output_all_fields``) every other field of ``input/points`` comes first, as received
   (intensity, ring, probabilities, ...).
   ``output/segments``: every segment (kept or not) in id order: id, class, point count,
-  SP, confidence and predicted IoU (NaN when excluded).
+  SP, confidence and predicted IoU (NaN when excluded); for the frame the message version
+  and the drift check's verdict (level, window score, frames, most drifted metrics,
+  passthrough: ``DomainVerdict.message_fields``).
   ``output/markers`` (optional): centroids of the kept segments coloured by confidence.
 """
 from __future__ import annotations
@@ -92,7 +94,7 @@ from pathlib import Path
 
 import numpy as np
 
-from lidar_quality_core.domain_profile import DomainCheck, DriftParameters
+from lidar_quality_core.domain_profile import DomainCheck, DomainVerdict, DriftParameters
 from lidar_quality_core.conventions import probability_field
 from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
@@ -756,7 +758,7 @@ class LmsProcessor:
         conf[kid], iou[kid] = conf_k, iou_k
         header = points_msg.header
         cloud = self.output_cloud(header, inp, res, conf, iou, all_fields=self.all_fields)
-        segs = self.segment_array(header, res, conf, iou)
+        segs = self.segment_array(header, res, conf, iou, verdict)
         mk = self.markers(header, inp, res, conf) if markers else None
         issues = {}
         if inp.n_renormalized:
@@ -835,8 +837,10 @@ class LmsProcessor:
         set_cloud_data(msg, packed.data)
         return msg
 
-    def segment_array(self, header, res: SegmentResult, conf, iou):
-        """``output/segments``: every segment in id order."""
+    def segment_array(self, header, res: SegmentResult, conf, iou,
+                      drift: DomainVerdict | None = None):
+        """``output/segments``: every segment in id order, with the drift check's verdict
+        (``drift``; None: not checked, drift_level DRIFT_OFF)."""
         Q = self._Quality
         new = Q.__new__
         names = self.settings.class_names
@@ -859,7 +863,9 @@ class LmsProcessor:
             out.append(q)
         return self._QualityArray(header=header,
                                   confidence_model_id=self.models.confidence_model_id,
-                                  iou_model_id=self.models.iou_model_id, segments=out)
+                                  iou_model_id=self.models.iou_model_id, segments=out,
+                                  **(drift or DomainVerdict({})).message_fields(
+                                      self._QualityArray))
 
     @staticmethod
     def centroids(inp: LmsInput, res: SegmentResult) -> np.ndarray:

@@ -9,7 +9,10 @@ Detection3DArray: mean box, merged class distribution in ``results`` top first, 
 the top score is the meta confidence; predictive variance of x, y, z, yaw on the pose
 covariance diagonal; id ``"<head>:<id>"`` of the top member; see
 ``pipeline.output_messages``), ``output/uncertainty`` (ClusterUncertaintyArray, same
-order), ``output/markers`` (boxes coloured by confidence, ``publish_markers``; built
+order; per frame the model ids, the message ``version`` and the drift monitor's verdict on
+the window ending at the frame: ``drift_level``, ``drift_score``, ``drift_window_frames``,
+``drift_quantities``, ``passthrough``: the confidences are the merged scores),
+``output/markers`` (boxes coloured by confidence, ``publish_markers``; built
 only while someone subscribes),
 ``/diagnostics`` (among its values the drift of the merged detections' features and
 scores from the models' training data: ``drift.score``, ``drift.level``,

@@ -503,7 +503,8 @@ class MimoOutput:
 def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
                     scores: str = "confidence", confidence_model_id: str = "",
                     iou_model_id: str = "", serialized: bool = False,
-                    autoware: AutowareOutput | None = None, kept=None):
+                    autoware: AutowareOutput | None = None, kept=None,
+                    drift: DomainVerdict | None = None):
     """``(Detection3DArray, ClusterUncertaintyArray)`` of the merged detections; with
     ``serialized`` the detections as CDR bytes (``detection_cdr.encode_detections``, the
     same message; a publisher takes them as they are, ~5x cheaper than building and
@@ -524,7 +525,8 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
     element is then ``(DetectedObjects, objects given the fallback existence)``.
     ``kept`` (C,) bool: only those go into the detections message (thresholds); the
     uncertainty message lists every merged detection (``detection_index`` = its index among
-    them, ``detection_id`` = the published detection's id).
+    them, ``detection_id`` = the published detection's id) and carries the message version
+    and the drift check's verdict (``drift``; None: not checked, drift_level DRIFT_OFF).
     """
     from lidar_quality_msgs.msg import ClusterUncertainty, ClusterUncertaintyArray
 
@@ -570,7 +572,9 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
     etv, atv = st.epistemic_total_variance.tolist(), st.aleatoric_total_variance.tolist()
     cl, il = conf.tolist(), iou.tolist()
     unc = ClusterUncertaintyArray(header=header, confidence_model_id=confidence_model_id,
-                                  iou_model_id=iou_model_id)
+                                  iou_model_id=iou_model_id,
+                                  **(drift or DomainVerdict({})).message_fields(
+                                      ClusterUncertaintyArray))
     unc.clusters = [ClusterUncertainty(detection_index=i, detection_id=ids[i],
                                        class_id=labels[i], cluster_size=size[i],
                                        shannon_entropy=se[i], aleatoric_entropy=ae[i],
@@ -606,7 +610,7 @@ def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, mode
     dets, unc = output_messages(header, frame, conf, iou, scores=scores,
                                 confidence_model_id=models.confidence_model_id,
                                 iou_model_id=models.iou_model_id, serialized=serialized,
-                                autoware=autoware, kept=kept)
+                                autoware=autoware, kept=kept, drift=verdict)
     n_fallback = None
     if autoware is not None:
         (dets, n_fallback) = dets

@@ -133,3 +133,47 @@ def test_monitor_scores_are_psi_of_the_window():
             v = np.concatenate([w[name] for w in window])
             assert score == pytest.approx(psi(q, v) - q.spread, abs=1e-4)
             assert psi_counts(q, fine_counts(q, v)) == psi(q, v)
+
+
+def test_domain_check_verdict_as_the_quality_messages_carry_it():
+    """The verdict's state for the quality messages: off without a profile, warming up until
+    a quantity is scored (fewer than min_frames frames, or fewer than 30 values of each
+    quantity after them), then the level; the window's score (NaN before), its frames and
+    the drifted quantities; passthrough only at ERROR with drift_action passthrough."""
+    from lidar_quality_core.domain_profile import DomainCheck, DriftParameters
+    from lidar_quality_msgs.msg import (ClusterUncertaintyArray, DetectionQualityArray,
+                                        SegmentQualityArray)
+
+    off = DomainCheck(None)({"points": [1.0]})
+    assert (off.state, off.frames, off.quantities, off.passthrough) == ("off", 0, (), False)
+    for cls in (DetectionQualityArray, SegmentQualityArray, ClusterUncertaintyArray):
+        f = off.message_fields(cls)
+        assert f.pop("drift_level") == cls.DRIFT_OFF and np.isnan(f.pop("drift_score"))
+        assert f == {"version": cls.MESSAGE_VERSION, "drift_window_frames": 0,
+                     "drift_quantities": "", "passthrough": False}
+        cls(**off.message_fields(cls))     # the message takes them as they are
+
+    rng = np.random.default_rng(8)
+    prof = DomainProfile.of({"points per frame": rng.normal(1e5, 1e3, 2000)})
+    for action in ("flag", "passthrough"):
+        check = DomainCheck(prof, DriftParameters(drift_window=50, drift_action=action))
+        # one value a frame: past min_frames (10) still unscored until 30 values are in
+        states = [check({"points per frame": [rng.normal(1e5, 1e3)]}) for _ in range(30)]
+        assert [v.state for v in states[:29]] == ["warming up"] * 29
+        assert all(np.isnan(v.score) and not v.passthrough for v in states[:29])
+        assert [v.frames for v in states] == list(range(1, 31))
+        assert states[-1].state == "OK"
+        assert states[-1].score == pytest.approx(states[-1].values["drift.score"], abs=5e-4)
+        for _ in range(20):                  # another sensor: half the points
+            v = check({"points per frame": [rng.normal(5e4, 1e3)]})
+        assert v.state == "ERROR" and v.error and v.quantities == ("points per frame",)
+        assert v.passthrough == (action == "passthrough")
+        f = v.message_fields(DetectionQualityArray)
+        assert f["drift_level"] == DetectionQualityArray.DRIFT_ERROR
+        assert f["drift_score"] == float(np.float32(v.score))   # as the message carries it
+        assert f["drift_quantities"] == v.values["drift.quantities"] == "points per frame"
+        assert f["passthrough"] == v.passthrough and f["drift_window_frames"] == 50
+    # ordered by severity: >= DRIFT_WARN is an alarm, 0 is a message that does not say
+    c = DetectionQualityArray
+    assert (c.DRIFT_UNKNOWN, c.DRIFT_OFF, c.DRIFT_WARMING_UP, c.DRIFT_OK, c.DRIFT_WARN,
+            c.DRIFT_ERROR) == (0, 1, 2, 3, 4, 5)

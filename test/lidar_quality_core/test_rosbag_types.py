@@ -38,7 +38,39 @@ def test_quality_message_type_hash_matches_rosidl():
     import json
     ts = typestore()
     for package, name in (("lidar_quality_msgs", "DetectionQualityArray"),
+                          ("lidar_quality_msgs", "SegmentQualityArray"),
+                          ("lidar_quality_msgs", "ClusterUncertaintyArray"),
                           ("vision_msgs", "Detection3DArray")):
         info = json.loads((msg_dir(package) / f"{name}.json").read_text())
         want = info["type_hashes"][0]["hash_string"]
         assert ts.hash_rihs01(f"{package}/msg/{name}") == want
+
+
+def test_quality_array_with_drift_fields_through_rosbags():
+    """The bytes process_bag writes (rclpy's, re-serialized by rosbags for zero padding)
+    hold the version and drift fields: rosbags reads rclpy's bytes field for field, and
+    rclpy reads rosbags' back to the same message, NaN score included."""
+    import math
+
+    from lidar_quality_msgs.msg import DetectionQuality, DetectionQualityArray
+    from std_msgs.msg import Header
+
+    ts = typestore()
+    name = "lidar_quality_msgs/msg/DetectionQualityArray"
+    for score in (0.75, math.nan):
+        sent = DetectionQualityArray(
+            header=Header(frame_id="lidar"), confidence_model_id="c", iou_model_id="i",
+            detections=[DetectionQuality(detection_id="a", class_id="car", confidence=0.5)],
+            version=DetectionQualityArray.MESSAGE_VERSION,
+            drift_level=DetectionQualityArray.DRIFT_WARN, drift_score=score,
+            drift_window_frames=50, drift_quantities="detector score", passthrough=True)
+        raw = serialize_message(sent)
+        msg = ts.deserialize_cdr(raw, name)
+        assert (msg.version, msg.drift_level, msg.drift_window_frames, msg.drift_quantities,
+                msg.passthrough) == (1, 4, 50, "detector score", True)
+        assert msg.drift_score == score or math.isnan(msg.drift_score) == math.isnan(score)
+        back = bytes(ts.serialize_cdr(msg, name))
+        assert len(back) == len(raw)
+        got = deserialize_message(back, DetectionQualityArray)
+        assert got.detections == sent.detections and got.passthrough
+        assert (got.drift_score == score) or (math.isnan(got.drift_score) and math.isnan(score))

@@ -207,3 +207,78 @@ def test_real_recordings_are_read(name):
     assert len(msgs) == count and all(len(m.raw) > 100_000 for m in msgs)
     assert [m.stamp_ns for m in msgs] == sorted(m.stamp_ns for m in msgs)
     assert (msgs[0].stamp_ns, msgs[-1].stamp_ns) == (info.start_ns, info.end_ns)
+
+
+#: the quality arrays as version 0 defined them (before the version and drift fields)
+VERSION_0 = {"DetectionQualityArray": "DetectionQuality[] detections",
+             "SegmentQualityArray": "SegmentQuality[] segments",
+             "ClusterUncertaintyArray": "ClusterUncertainty[] clusters"}
+
+
+def version_0_typestore():
+    """A typestore with the quality arrays of version 0 (their items are unchanged)."""
+    from lidar_quality_core.rosbag_types import msg_dir
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.ROS2_JAZZY)
+    types = {}
+    for item in ("DetectionQuality", "SegmentQuality", "ClusterUncertainty"):
+        text = (msg_dir("lidar_quality_msgs") / f"{item}.msg").read_text()
+        types.update(get_types_from_msg(text, f"lidar_quality_msgs/msg/{item}"))
+    for name, items in VERSION_0.items():
+        text = ("std_msgs/Header header\nstring confidence_model_id\nstring iou_model_id\n"
+                + items + "\n")
+        types.update(get_types_from_msg(text, f"lidar_quality_msgs/msg/{name}"))
+    store.register(types)
+    return store
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_bag_of_version_0_quality_messages_is_read_by_its_definition(tmp_path, storage):
+    """A bag recorded before the drift fields: its bytes end where version 1's fields begin,
+    so rclpy cannot read them with the installed definition; read_bag decodes them by the
+    definition the bag recorded, the new fields at their defaults (version 0, drift level
+    unknown), and BagWriter copies them with that definition."""
+    from lidar_quality_msgs.msg import DetectionQualityArray
+    from rclpy.serialization import deserialize_message
+    from rosbags.rosbag2 import StoragePlugin, Writer
+
+    old = version_0_typestore()
+    T = old.types
+    name = "lidar_quality_msgs/msg/DetectionQualityArray"
+    header = T["std_msgs/msg/Header"](T["builtin_interfaces/msg/Time"](7, 500), "lidar")
+    items = [T["lidar_quality_msgs/msg/DetectionQuality"](i, f"d{i}", "car", 0.9, 0.25 * i,
+                                                          0.5) for i in range(3)]
+    raw = bytes(old.serialize_cdr(T[name](header, "clf-1", "reg-1", items), name))
+    with pytest.raises(Exception, match="deserialize"):
+        deserialize_message(raw, DetectionQualityArray)       # the installed definition
+    plugin = {"mcap": StoragePlugin.MCAP, "sqlite3": StoragePlugin.SQLITE3}[storage]
+    with Writer(tmp_path / "old", version=9, storage_plugin=plugin) as w:
+        conn = w.add_connection("/lmd/output/quality", name, typestore=old)
+        w.write(conn, 10, raw)
+
+    def check(bag):
+        (m,) = read_bag(bag)
+        assert m.raw == raw and m.recorded      # the recorded (older) definition
+        q = m.decode()
+        assert isinstance(q, DetectionQualityArray)
+        assert (q.header.stamp.sec, q.header.stamp.nanosec, q.header.frame_id) == (7, 500,
+                                                                                   "lidar")
+        assert (q.confidence_model_id, q.iou_model_id) == ("clf-1", "reg-1")
+        assert [(d.detection_index, d.detection_id, d.confidence) for d in q.detections] == [
+            (0, "d0", 0.0), (1, "d1", 0.25), (2, "d2", 0.5)]
+        assert (q.version, q.drift_level) == (0, q.DRIFT_UNKNOWN)
+
+    check(tmp_path / "old")
+    info = bag_info(tmp_path / "old")
+    t = info.topics["/lmd/output/quality"]
+    with BagWriter(tmp_path / "copy") as w:       # copied bytes keep their definition
+        w.write("/lmd/output/quality", name, 10, raw, source=t)
+    check(tmp_path / "copy")
+    assert bag_info(tmp_path / "copy").topics["/lmd/output/quality"].digest == t.digest
+    # the installed definition's messages are decoded by rclpy as always
+    new = DetectionQualityArray(header=Header(frame_id="lidar"), version=1, drift_level=3)
+    with BagWriter(tmp_path / "new") as w:
+        w.write("/q", name, 1, new)
+    (m,) = read_bag(tmp_path / "new")
+    assert not m.recorded and m.decode().drift_level == 3

@@ -50,6 +50,9 @@ def test_lmd_rows_are_the_quality_messages_and_the_models_features(run):
     assert t["det_id"].tolist() == [d.detection_id for _, d in q]
     assert np.allclose(t["confidence"], [d.confidence for _, d in q], equal_nan=True)
     assert np.allclose(t["score"], [d.original_score for _, d in q])
+    assert_drift_columns(t, quality(out, "/lmd/output/quality"), "detections")
+    assert_drift_columns(tables["mimo"].to_pandas(), quality(out, "/mimo/output/uncertainty"),
+                         "clusters")
     m = meta(tables["lmd"])
     names = json.loads(m["lq.feature_names"])
     assert names == list(LmdSettings().feature_names())
@@ -59,6 +62,22 @@ def test_lmd_rows_are_the_quality_messages_and_the_models_features(run):
     conf, iou = models.predict(X)
     assert np.allclose(conf, t["confidence"], equal_nan=True)
     assert np.allclose(iou, t["predicted_iou"], equal_nan=True)
+
+
+def assert_drift_columns(t, msgs, items):
+    """Each row's drift columns are its frame's quality message's verdict."""
+    rows = [(m.drift_level, m.drift_score, m.passthrough, type(m))
+            for m in msgs for _ in getattr(m, items)]
+    assert len(rows) == len(t) > 0
+    names = {"DRIFT_OFF": "off", "DRIFT_WARMING_UP": "warming up", "DRIFT_OK": "OK",
+             "DRIFT_WARN": "WARN", "DRIFT_ERROR": "ERROR"}
+    assert t["drift_level"].tolist() == [
+        next(n for c, n in names.items() if getattr(cls, c) == level)
+        for level, _, _, cls in rows]
+    assert np.allclose(t["drift_score"], [s for _, s, _, _ in rows], equal_nan=True)
+    assert t["passthrough"].tolist() == [p for _, _, p, _ in rows]
+    # the shipped models record their training profile: two frames are a window too short
+    assert set(t["drift_level"]) == {"warming up"} and t["drift_score"].isna().all()
 
 
 def test_box_targets_from_the_ground_truth(run):
@@ -89,6 +108,10 @@ def test_lms_rows_are_the_segment_messages_with_targets(run):
     assert np.allclose(t["confidence"], [s.confidence for s in segs])
     assert np.allclose(t["predicted_iou"], [s.predicted_iou for s in segs])
     assert t["iou_adj"].between(0, 1).all() and t["iou"].between(0, 1).all()
+    msgs = quality(out, "/lms/output/segments")
+    for m in msgs:     # the table keeps the scored segments only
+        m.segments = [s for s in m.segments if np.isfinite(s.confidence)]
+    assert_drift_columns(t, msgs, "segments")
     names = json.loads(meta(tables["lms"])["lq.feature_names"])
     assert [c for c in t.columns if c.startswith(FEATURE_PREFIX)] == \
         [FEATURE_PREFIX + n for n in names]

@@ -196,6 +196,9 @@ def test_outputs_equal_models_on_frame_features(ros, models_dir):
         np.testing.assert_allclose([e.predicted_iou for e in q.detections], iou, rtol=1e-12)
         assert (q.confidence_model_id, q.iou_model_id) == (models.confidence_model_id,
                                                            models.iou_model_id)
+        # models without a training-data profile: the message says the monitor is off
+        assert (q.version, q.drift_level) == (q.MESSAGE_VERSION, q.DRIFT_OFF)
+        assert math.isnan(q.drift_score) and not q.passthrough
         texts = [m.text for m in io.markers.messages[k].markers if m.text]
         assert texts == [f"{c} c={a:.2f} iou={b:.2f}"
                          for c, a, b in zip(fr.detections.labels, conf, iou)]
@@ -207,6 +210,40 @@ def test_outputs_equal_models_on_frame_features(ros, models_dir):
     assert status.level == DiagnosticStatus.OK and v["frames_out"] == "3"
     assert v["model.confidence"] == models.confidence_model_id
     assert v["detections.in"] == v["detections.out"] == str(len(allc))
+
+
+def test_drift_verdict_in_output_quality(ros, tmp_path):
+    """Models with a training-data profile: output/quality carries the drift monitor's
+    verdict: warming up, OK on frames like the training data, then ERROR with the detector
+    score named on another detector's scores (x 0.3); with drift_action passthrough the
+    message says so and output/detections carries the detector's own scores."""
+    from dataclasses import replace
+
+    settings = LmdSettings(proposal_mode="none")
+    c, r = train_models(tmp_path, settings, n_frames=8, profile=True)
+    node = ros.start(LmdNode, parameters={
+        "proposal_mode": "none", "classifier_path": str(c), "regressor_path": str(r),
+        "drift_window": 4, "drift_action": "passthrough"})
+    io = Io(ros, node, inputs=("points", "detections"))
+    frames = [synthetic.synthetic_frame(n_points=20_000, n_objects=15, n_proposals=150,
+                                        seed=700 + k) for k in range(8)]
+    frames[4:] = [replace(f, det_scores=f.det_scores * 0.3) for f in frames[4:]]
+    for k, f in enumerate(frames):
+        cloud, dets, _ = frame_messages(f, k + 1)
+        io.send(cloud, dets)
+        assert io.quality.wait_for(k + 1, timeout=15.0) and io.dets.wait_for(k + 1, 5.0)
+    q = io.quality.messages
+    assert all(m.version == DetectionQualityArray.MESSAGE_VERSION for m in q)
+    assert [m.drift_window_frames for m in q] == [1, 2, 3, 4, 4, 4, 4, 4]
+    assert [m.drift_level for m in q[:4]] == [q[0].DRIFT_WARMING_UP] * 3 + [q[0].DRIFT_OK]
+    assert all(math.isnan(m.drift_score) for m in q[:3]) and q[3].drift_score < 0.25
+    assert not any(m.passthrough for m in q[:4])
+    last = q[-1]
+    assert last.drift_level == last.DRIFT_ERROR and last.drift_score >= 0.5
+    assert "detector score" in last.drift_quantities.split(", ") and last.passthrough
+    top = [max(scores(d)) for d in io.dets.messages[-1].detections]
+    np.testing.assert_allclose(top, [e.original_score for e in last.detections], rtol=1e-12)
+    assert all(math.isnan(e.predicted_iou) for e in last.detections)
 
 
 def test_min_confidence_filters_only_below(ros, models_dir):

@@ -608,7 +608,32 @@ def shifted(f, factor):
     return replace(f, det_scores=f.det_scores * factor, prop_scores=f.prop_scores * factor)
 
 
+def sent_quality(out):
+    """``out.quality`` as a subscriber gets it: through rclpy's serialization."""
+    from lidar_quality_msgs.msg import DetectionQualityArray
+
+    return deserialize_message(serialize_message(out.quality), DetectionQualityArray)
+
+
+def assert_drift_fields(q, out, level):
+    """The quality message ``q`` carries the frame's drift verdict as /diagnostics has it."""
+    assert q.version == q.MESSAGE_VERSION == 1
+    assert q.drift_level == level
+    v = out.values
+    if level in (q.DRIFT_OK, q.DRIFT_WARN, q.DRIFT_ERROR):
+        assert q.drift_level - q.DRIFT_OK == ["OK", "WARN", "ERROR"].index(v["drift.level"])
+        assert q.drift_score == pytest.approx(v["drift.score"], abs=5e-4)
+    else:
+        assert math.isnan(q.drift_score)
+    assert q.drift_window_frames == v.get("drift.window_frames", 0)
+    assert q.drift_quantities == v.get("drift.quantities", "")
+
+
 def test_drift_check_flags_frames_unlike_the_training_data(tmp_path):
+    """/diagnostics and every frame's output/quality say how far the inputs are from the
+    models' training data: warming up, then OK in the training domain; ERROR, the detector
+    score named, for another detector's scores (x 0.3); with passthrough the message says
+    its confidences are the detector's."""
     from lidar_quality_core.domain_profile import DriftParameters
 
     settings = LmdSettings(proposal_mode="none")
@@ -623,15 +648,25 @@ def test_drift_check_flags_frames_unlike_the_training_data(tmp_path):
         out = proc.process(cloud, dets, None)
         assert out.values["drift.level"] == "OK", out.values
         assert "domain_drift" not in out.issues
+        q = sent_quality(out)
+        # scoring starts with a full window (4 frames here, 10 by default)
+        assert_drift_fields(q, out, q.DRIFT_WARMING_UP if k < 3 else q.DRIFT_OK)
+        assert q.drift_window_frames == k + 1 and not q.passthrough
+        assert [d.confidence for d in q.detections] == out.confidence.tolist()
     levels = []
     for k, f in enumerate(frames[4:]):                    # another detector's scores
         cloud, dets, _ = frame_messages(shifted(f, 0.3), k + 5)
         out = proc.process(cloud, dets, None)
         levels.append(out.values["drift.level"])
+        q = sent_quality(out)
+        assert_drift_fields(q, out, q.DRIFT_OK + ["OK", "WARN", "ERROR"].index(levels[-1]))
     assert levels[-1] == "ERROR" and "domain_drift" in out.errors
     assert "detector score" in out.issues["domain_drift"]
     assert "another detector?" in out.issues["domain_drift"]
     assert np.isfinite(out.confidence[out.frame.valid]).all()   # flag: annotated as always
+    assert q.drift_level == q.DRIFT_ERROR and q.drift_score >= 0.5 and not q.passthrough
+    assert "detector score" in q.drift_quantities.split(", ")
+    assert q.drift_window_frames == 4
 
     passthrough = LmdProcessor(settings, models, drift=DriftParameters(
         drift_window=2, drift_action="passthrough"))
@@ -642,6 +677,11 @@ def test_drift_check_flags_frames_unlike_the_training_data(tmp_path):
     assert out.values["drift.level"] == "ERROR"
     assert np.array_equal(out.confidence[v], out.frame.detections.scores[v])
     assert np.isnan(out.predicted_iou).all()
+    q = sent_quality(out)
+    assert_drift_fields(q, out, q.DRIFT_ERROR)
+    assert q.passthrough
+    conf = np.array([d.confidence for d in q.detections])
+    assert np.array_equal(conf[v], [d.original_score for d, ok in zip(q.detections, v) if ok])
 
 
 def test_models_without_a_profile_say_the_drift_check_is_off(tmp_path):
@@ -654,3 +694,6 @@ def test_models_without_a_profile_say_the_drift_check_is_off(tmp_path):
     out = LmdProcessor(settings, models).process(cloud, dets, None)
     assert out.values["drift"].startswith("off: the models record no training-data")
     assert "domain_drift" not in out.issues
+    q = sent_quality(out)
+    assert_drift_fields(q, out, q.DRIFT_OFF)
+    assert q.drift_window_frames == 0 and not q.passthrough

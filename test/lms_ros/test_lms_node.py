@@ -188,6 +188,9 @@ def test_outputs_equal_models_on_frame_metrics(ros, models_dir, frames):
         check_output(io.out.messages[k], io.segments.messages[k], msg, res, conf, iou, per_point)
         assert len(io.markers.messages[k].markers[-1].points) == len(res.kept_ids)
         conf_all.append(conf)
+        sq = io.segments.messages[k]   # models without a profile: the monitor is off
+        assert (sq.version, sq.drift_level) == (sq.MESSAGE_VERSION, sq.DRIFT_OFF)
+        assert np.isnan(sq.drift_score) and not sq.passthrough
     # float32 and uint8: the same labels up to quantization (argmax flips of near ties)
     l32, l8 = (read_fields(m, ["label"], np.int64)[:, 0] for m in io.out.messages)
     assert (l32 == l8).mean() > 0.995

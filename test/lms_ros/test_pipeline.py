@@ -360,6 +360,10 @@ def test_processor_outputs(frames, models):
     sq = out.segments
     assert sq.header == msg.header and len(sq.segments) == res.n_segments
     assert sq.confidence_model_id == models.confidence_model_id
+    # models without a training-data profile: no drift monitor, said in the message
+    assert (sq.version, sq.drift_level) == (sq.MESSAGE_VERSION, sq.DRIFT_OFF)
+    assert np.isnan(sq.drift_score) and sq.drift_window_frames == 0
+    assert sq.drift_quantities == "" and not sq.passthrough
     for i in (0, int(res.kept_ids[0]), res.n_segments - 1):
         q = sq.segments[i]
         assert q.segment_id == i and q.class_index == res.segment_class[i]
@@ -722,12 +726,24 @@ def test_drift_check_flags_a_less_certain_segmenter(tmp_path):
     for k, f in enumerate(live[:2]):
         out = proc.process(frame_cloud(f, probs_of(f.xyz, f.ring, f.semantic, 50 + k)))
         assert out.values["drift.level"] == "OK", out.values.get("drift.quantities")
+        q = sent(out.segments)        # output/segments says so too
+        assert q.version == q.MESSAGE_VERSION and not q.passthrough
+        assert q.drift_window_frames == k + 1
+        if k == 0:                    # scoring starts with a full window (2 frames here)
+            assert q.drift_level == q.DRIFT_WARMING_UP and np.isnan(q.drift_score)
+        else:
+            assert q.drift_level == q.DRIFT_OK and q.drift_quantities == ""
+            assert q.drift_score == pytest.approx(out.values["drift.score"], abs=5e-4)
     for k, f in enumerate(live[2:]):
         out = proc.process(frame_cloud(f, probs_of(f.xyz, f.ring, f.semantic, 60 + k,
                                                    noise=3.6)))
     assert out.values["drift.level"] == "ERROR" and "domain_drift" in out.errors, out.values
     assert out.issues["domain_drift"].startswith("inputs unlike the models' training data")
     assert np.isfinite(out.confidence[out.result.kept_ids]).all()     # flag: annotated
+    q = sent(out.segments)
+    assert q.drift_level == q.DRIFT_ERROR and q.drift_score >= 1.0 and not q.passthrough
+    assert q.drift_score == pytest.approx(out.values["drift.score"], abs=5e-4)
+    assert q.drift_quantities == out.values["drift.quantities"] != ""
 
     passthrough = LmsProcessor(s, models, drift=DriftParameters(**drift,
                                                                 drift_action="passthrough"))
@@ -737,3 +753,13 @@ def test_drift_check_flags_a_less_certain_segmenter(tmp_path):
     assert out.values["drift.level"] == "ERROR"
     assert np.isnan(out.confidence).all() and np.isnan(out.predicted_iou).all()
     assert len(out.segments.segments) == out.result.n_segments       # every segment still out
+    q = sent(out.segments)
+    assert q.drift_level == q.DRIFT_ERROR and q.passthrough
+    assert all(np.isnan(x.confidence) and np.isnan(x.predicted_iou) for x in q.segments)
+
+
+def sent(msg):
+    """``msg`` as a subscriber gets it: through rclpy's serialization."""
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    return deserialize_message(serialize_message(msg), type(msg))

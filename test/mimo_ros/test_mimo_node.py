@@ -222,6 +222,9 @@ def test_outputs_equal_pipeline_and_meta_models(ros, model_dir):
                                    ref.frame.merge.stats.aleatoric_total_variance)
         assert u.confidence_model_id == models.confidence_model_id and u.iou_model_id
         assert d.header.frame_id == "lidar"
+        # models without a training-data profile: the message says the monitor is off
+        assert (u.version, u.drift_level) == (u.MESSAGE_VERSION, u.DRIFT_OFF)
+        assert np.isnan(u.drift_score) and not u.passthrough
     assert 0.0 < np.mean([c.confidence for m in rig.unc.messages for c in m.clusters]) < 1.0
     assert rig.node.diag.dropped == 0
 

@@ -315,6 +315,10 @@ def test_process_frame_outputs(models):
     dets, unc = out.detections, out.uncertainty
     assert dets.header.stamp.sec == 3 and unc.header.stamp.sec == 3
     assert unc.confidence_model_id == models.confidence_model_id
+    # no drift check asked for (domain None): the message says the monitor is off
+    assert (unc.version, unc.drift_level) == (unc.MESSAGE_VERSION, unc.DRIFT_OFF)
+    assert np.isnan(unc.drift_score) and unc.drift_window_frames == 0
+    assert unc.drift_quantities == "" and not unc.passthrough
     ids = [d.id for d in dets.detections]
     assert ids == f.merged_ids() == [c.detection_id for c in unc.clusters]
     for i, d in enumerate(dets.detections):
@@ -613,13 +617,26 @@ def test_drift_check_flags_another_detectors_scores(tmp_path):
     live = head_frames(n_frames=16, seed=2)
     # weaker scores leave fewer boxes: 8 frames hold the 30 values a score needs
     proc = MimoProcessor(s, models, drift=DriftParameters(drift_window=8))
-    for _, heads, variances, _ in live[:8]:
+    for k, (_, heads, variances, _) in enumerate(live[:8]):
         out = proc.process(heads, variances)
         assert out.values["drift.level"] == "OK", out.values
+        q = sent(out.out.uncertainty)   # output/uncertainty says so too
+        assert q.version == q.MESSAGE_VERSION and not q.passthrough
+        assert q.drift_window_frames == k + 1
+        if k < 7:                       # scoring starts with a full window (8 frames here)
+            assert q.drift_level == q.DRIFT_WARMING_UP and np.isnan(q.drift_score)
+        else:
+            assert q.drift_level == q.DRIFT_OK
+            assert q.drift_score == pytest.approx(out.values["drift.score"], abs=5e-4)
     for _, heads, variances, _ in live[8:]:
         out = proc.process(weaker(heads), variances)
     assert out.values["drift.level"] == "ERROR" and "domain_drift" in out.errors, out.values
     assert "detector score" in out.issues["domain_drift"]
+    q = sent(out.out.uncertainty)
+    assert q.drift_level == q.DRIFT_ERROR and q.drift_score >= 0.5 and not q.passthrough
+    assert q.drift_score == pytest.approx(out.values["drift.score"], abs=5e-4)
+    assert "detector score" in q.drift_quantities.split(", ")
+    assert [c.confidence for c in q.clusters] == out.out.confidence.tolist()
 
     passthrough = MimoProcessor(s, models, drift=DriftParameters(
         drift_window=8, drift_action="passthrough"))
@@ -628,3 +645,11 @@ def test_drift_check_flags_another_detectors_scores(tmp_path):
     o = out.out
     np.testing.assert_allclose(o.confidence, o.frame.merge.scores)
     assert np.isnan(o.predicted_iou).all()
+    q = sent(o.uncertainty)
+    assert q.drift_level == q.DRIFT_ERROR and q.passthrough
+    np.testing.assert_allclose([c.confidence for c in q.clusters], o.frame.merge.scores)
+
+
+def sent(msg):
+    """``msg`` as a subscriber gets it: through rclpy's serialization."""
+    return deserialize_message(serialize_message(msg), type(msg))
