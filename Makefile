@@ -19,7 +19,7 @@ help:
 	@echo "make test   run the test suite (set-up and build on first use)"
 	@echo "make reference-models   retrain the reference perception under models/reference"
 	@echo "make meta-models   retrain the LMD / LMS / MIMO meta models (models/lmd, lms, mimo) and write their reports"
-	@echo "make domain-report   LMD's drift monitor in and out of its training domain: out/domain/report.md"
+	@echo "make domain-report   the domain-shift benchmark: drift monitors, LMD adaptation with 1-50 labelled frames: out/domain/report.md"
 	@echo "make fuzz | soak   hardening runs (malformed input; 10 minutes at 10 Hz)"
 	@echo "make setup | build | bench | clean | distclean | lock"
 	@echo "LQ_SHM_SEGMENT_MB=N make ...   Fast DDS shared-memory segment of N MiB (default 64: clouds up to 66 MB)"
@@ -73,9 +73,10 @@ mimo-models: build $(META_BAGS)
 	bash scripts/with_env.sh python -m lidar_quality_training.mimo.train --data data/perception/meta_train --out models/mimo --cache data/cache/mimo
 	bash scripts/with_env.sh python -m lidar_quality_training.mimo.evaluate --data data/perception/meta_test --models models/mimo --out out/mimo_eval --cache data/cache/mimo --docs docs --model-card models/mimo/MODEL_CARD.md
 
-# Issue 18's domain-shift benchmark, first part: LMD's drift monitor in and out of its
-# training domain (simulated sensors, detector and intensity shifts, real KITTI scans).
-domain-report: build
+# Issue 18's domain-shift benchmark: LMD's drift monitor and adaptation in and out of its
+# training domain (simulated sensors, scene type, detector and intensity shifts, real KITTI
+# scans), every node's false alarms on the held-out meta_test bags.
+domain-report: build data/perception/meta_test/.done
 	bash scripts/with_env.sh python -m lidar_quality_tools.domain_report --out out/domain
 
 fuzz: build

@@ -17,12 +17,13 @@ rows, from the simplest:
 The choice is made by cross validation over the user's frames, grouped by sequence when
 there are at least three, else by blocks of ``BLOCK_FRAMES`` consecutive frames when there
 are at least three blocks (neighbouring frames see the same objects), else by frame; one
-frame is split by rows, and the result says so. The score is the out-of-fold Brier score (classifier) or squared
-error (regressor) on the rows every candidate predicted; the simplest candidate within one
-standard error (paired, over the groups) of the best is taken, because a few frames do
-not tell small differences apart. Uncertainty: 95 % intervals of every out-of-fold metric
-from a bootstrap over the groups, so a user with three frames sees how little three
-frames say. The chosen candidates are then fitted on all rows.
+frame is split by rows, and the result says so. The score is the out-of-fold Brier score
+(classifier) or squared error (regressor) on the rows every candidate predicted; the
+simplest candidate within one standard error (paired, over the groups) of the best is
+taken, because a few frames do not tell small differences apart. Uncertainty: 95 %
+intervals of every out-of-fold metric from a bootstrap over the groups, so a user with
+three frames sees how little three frames say. The chosen candidates are then fitted on
+all rows.
 """
 from __future__ import annotations
 
@@ -42,7 +43,7 @@ from lidar_quality_core.recalibration import (RecalibratedClassifier, Recalibrat
 
 __all__ = ["STRATEGIES", "CONTINUE_ROUNDS", "AdaptData", "AdaptResult", "fit_candidate",
            "adapt", "evaluate", "predict", "save_adapted", "subset_frames",
-           "frame_blocks", "one_se_choice", "BLOCK_FRAMES"]
+           "frame_blocks", "one_se_choice", "profile_of", "BLOCK_FRAMES"]
 
 STRATEGIES = ("shipped", "score", "recalibrate", "continue", "fresh")
 BLOCK_FRAMES = 5
@@ -396,6 +397,27 @@ def _round(d):
     return d
 
 
+def profile_of(data: AdaptData, extra: dict | None = None,
+               extra_groups: dict | None = None, base: dict | None = None) -> dict:
+    """The domain profile (JSON) of the user's rows: every feature plus ``extra``
+    quantities (``extra_groups``: their sequences), quantiles from the user's rows. A few
+    labelled frames cover a few scenes, too few to measure how much one scene differs
+    from the next; so each quantity's ``spread`` is the larger of the user's (between
+    sequences) and the ``base`` profile's (the base model's training scenes), and the
+    monitor of an adapted model allows for at least the scene-to-scene variation of the
+    base's training data."""
+    from lidar_quality_core.domain_profile import DomainProfile, QuantityProfile
+
+    own = DomainProfile.from_json(meta_model.training_profile(
+        data.X, data.feature_names, extra, groups=data.sequence, extra_groups=extra_groups))
+    if base:
+        prior = DomainProfile.from_json(base).quantities
+        own = DomainProfile({k: QuantityProfile(q.quantiles, q.count, q.missing, max(
+            q.spread, prior[k].spread if k in prior else 0.0))
+            for k, q in own.quantities.items()})
+    return own.to_json()
+
+
 def save_adapted(result: AdaptResult, out, prefix: str, data: AdaptData, *,
                  base_manifest: dict, base_paths: Sequence, sources: list, command: str,
                  profile_extra: dict | None = None, profile_groups: dict | None = None,
@@ -414,8 +436,7 @@ def save_adapted(result: AdaptResult, out, prefix: str, data: AdaptData, *,
     for k in ("target", "tp_rule", "use_points", "class_aware", "merge_settings"):
         if k in base_td:
             training[k] = base_td[k]
-    profile = meta_model.training_profile(data.X, data.feature_names, profile_extra,
-                                          groups=data.frame, extra_groups=profile_groups)
+    profile = profile_of(data, profile_extra, profile_groups, base_td.get("domain_profile"))
     metrics = {"cross_validation": _round(result.cv)}
     cpath, rpath = meta_model.save_pair(out, prefix, result.classifier, result.regressor,
                                         data.feature_names, training_data=training,
@@ -460,8 +481,9 @@ def model_card(result: AdaptResult, *, title: str, sources: list, base_paths, co
               "## Reproduce", "", "```", command, "```", "",
               "## Choice", "",
               f"Confidence: **{result.chosen['classification']}**; predicted IoU: "
-              f"**{result.chosen['regression']}** ({result.scheme}; lowest out-of-fold Brier "
-              "score / squared error). 95 % intervals: bootstrap over frames.", ""]
+              f"**{result.chosen['regression']}** ({result.scheme}; the simplest candidate "
+              "within one standard error of the lowest out-of-fold Brier score / squared "
+              "error). 95 % intervals: bootstrap over the cross-validation groups.", ""]
     lines += cv_table(result)
     if result.notes:
         lines += ["", "## Notes", ""] + [f"- {n}" for n in result.notes]

@@ -58,8 +58,8 @@ def profile_extra(ds: LmdDataset, keep_frames: np.ndarray, rows: np.ndarray):
     pts = ds.frame_points[keep_frames]
     known = pts >= 0
     return ({"detector score": ds.score[rows], "points per frame": pts[known]},
-            {"detector score": ds.frame[rows].astype(str),
-             "points per frame": keep_frames[known].astype(str)})
+            {"detector score": ds.group[rows],
+             "points per frame": ds.frame_group[keep_frames][known]})
 
 
 def main(argv=None) -> int:

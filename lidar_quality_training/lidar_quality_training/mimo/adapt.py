@@ -61,7 +61,7 @@ def first_frames(ds: MimoDataset, n: int | None) -> np.ndarray:
 def profile_extra(ds: MimoDataset, rows: np.ndarray):
     """The non-feature quantities of the domain profile (as ``mimo-train`` records them)."""
     return ({"detector score": ds.m_score[rows]},
-            {"detector score": ds.m_frame[rows].astype(str)})
+            {"detector score": ds.frame_group[ds.m_frame[rows]]})
 
 
 def main(argv=None) -> int:
