@@ -20,7 +20,9 @@ are at least three blocks (neighbouring frames see the same objects), else by fr
 frame is split by rows, and the result says so. The score is the out-of-fold Brier score
 (classifier) or squared error (regressor) on the rows every candidate predicted; the
 simplest candidate within one standard error (paired, over the groups) of the best is
-taken, because a few frames do not tell small differences apart. Uncertainty: 95 %
+taken, because a few frames do not tell small differences apart; from fewer than
+``MIN_FRAMES_FOR_TREES`` frames only the candidates with a few coefficients (``SIMPLE``)
+can be chosen. Uncertainty: 95 %
 intervals of every out-of-fold metric from a bootstrap over the groups, so a user with
 three frames sees how little three frames say. The chosen candidates are then fitted on
 all rows.
@@ -43,10 +45,15 @@ from lidar_quality_core.recalibration import (RecalibratedClassifier, Recalibrat
 
 __all__ = ["STRATEGIES", "CONTINUE_ROUNDS", "AdaptData", "AdaptResult", "fit_candidate",
            "adapt", "evaluate", "predict", "save_adapted", "subset_frames",
-           "frame_blocks", "one_se_choice", "profile_of", "BLOCK_FRAMES"]
+           "frame_blocks", "one_se_choice", "profile_of", "BLOCK_FRAMES", "SIMPLE",
+           "MIN_FRAMES_FOR_TREES"]
 
 STRATEGIES = ("shipped", "score", "recalibrate", "continue", "fresh")
 BLOCK_FRAMES = 5
+#: candidates with a few coefficients, the only ones chosen from fewer than
+#: MIN_FRAMES_FOR_TREES frames (a frame or two cannot show that more trees generalise)
+SIMPLE = ("shipped", "score", "recalibrate")
+MIN_FRAMES_FOR_TREES = 5
 TASKS = ("classification", "regression")
 CONTINUE_ROUNDS = 60
 N_FOLDS = 5
@@ -323,6 +330,11 @@ def adapt(data: AdaptData, base_classifier, base_regressor, *, kind: str = "xgbo
     bases = {"classification": base_classifier, "regression": base_regressor}
     folds, scheme, units = _folds(data, n_folds, seed)
     notes = []
+    eligible = tuple(strategies)
+    if len(data.frames) < MIN_FRAMES_FOR_TREES:
+        eligible = tuple(s for s in strategies if s in SIMPLE) or ("shipped",)
+        notes.append(f"{len(data.frames)} frame(s): only {', '.join(eligible)} can be chosen "
+                     f"(tree candidates need {MIN_FRAMES_FOR_TREES} frames or more)")
     oof = {task: {s: np.full(len(data), np.nan) for s in strategies} for task in TASKS}
     for tr, va in folds:
         part = data.rows(tr)
@@ -334,14 +346,14 @@ def adapt(data: AdaptData, base_classifier, base_regressor, *, kind: str = "xgbo
     cv, chosen = {}, {}
     for task in TASKS:
         y = data.tp.astype(float) if task == "classification" else data.iou
-        ok = np.all([np.isfinite(p) for p in oof[task].values()], axis=0) if folds else \
+        ok = np.all([np.isfinite(oof[task][s]) for s in eligible], axis=0) if folds else \
             np.zeros(len(data), bool)
         usable = [s for s in strategies if np.isfinite(oof[task][s]).any()]
         if force and force.get(task):
             chosen[task] = force[task]
         elif ok.any():
-            chosen[task] = one_se_choice({s: (p[ok] - y[ok]) ** 2 for s, p in oof[task].items()},
-                                         units[ok], strategies)
+            chosen[task] = one_se_choice({s: (p[ok] - y[ok]) ** 2 for s, p in oof[task].items()
+                                          if s in eligible}, units[ok], eligible)
         else:
             chosen[task] = "shipped"
             notes.append(f"{task}: too few rows to compare candidates; the shipped model "

@@ -65,6 +65,9 @@ def test_one_frame_splits_rows_and_says_so(base):
     res = A.adapt(domain(1, 6, score_scale=0.3), clf, reg, n_boot=50)
     assert "one frame" in res.scheme and "optimistic" in res.scheme
     assert res.n_frames == 1
+    # one frame cannot show that more trees generalise: only the few-coefficient candidates
+    assert set(res.chosen.values()) <= set(A.SIMPLE)
+    assert any("tree candidates need" in n for n in res.notes)
     lo, hi = res.cv["shipped"]["ci95"]["auroc"]
     assert hi - lo > 0.01                      # a frame says little: a wide interval
 
