@@ -1,11 +1,10 @@
 """KITTI object files read back by an independent minimal reader; every conversion uses
 the frame's own calibration (real KITTI frames round-trip through our writer and reader)."""
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
 from lidar_sim import kitti
+from realdata import require_realdata_kitti
 
 
 def _read_calib(path):
@@ -168,18 +167,9 @@ def test_writer_uses_the_calibration_it_is_given(tmp_path):
 
 
 # ------------------------------------------------------------------ real KITTI frames
-def realdata_kitti_dir() -> Path:
-    env = os.environ.get("LQ_REALDATA_KITTI")
-    return Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "realdata_kitti"
-
-
 @pytest.fixture(scope="module")
 def real_kitti():
-    base = realdata_kitti_dir() / "training"
-    if not (base / "label_2").is_dir():
-        pytest.skip(f"real KITTI frames not found at {base} "
-                    "(set LQ_REALDATA_KITTI to the realdata_kitti directory)")
-    return base
+    return require_realdata_kitti() / "training"
 
 
 def test_real_frames_round_trip(real_kitti, tmp_path):

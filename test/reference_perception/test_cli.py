@@ -1,9 +1,7 @@
 """reference-perception offline: a simulated bag becomes a perception bag; KITTI and
 SemanticKITTI result files (KITTI results in each frame's own camera frame, read back to
 the detector's lidar boxes by lmd_ros)."""
-import os
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -13,6 +11,7 @@ from lidar_quality_ros.bag_io import bag_topics, read_bag
 from lidar_sim.classes import CLASS_NAMES
 from lidar_sim.cli import main as sim_main
 
+from realdata import require_realdata_kitti
 from reference_perception.cli import Perception, main
 from reference_perception.messages import probability_field
 from sensor_msgs.msg import PointField
@@ -110,22 +109,14 @@ def detector_boxes(perception, scan_path):
     return det["detector"].boxes[det["detector"].keep]
 
 
-def realdata_kitti_dir() -> Path:
-    env = os.environ.get("LQ_REALDATA_KITTI")
-    return Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "realdata_kitti"
-
-
 def test_kitti_results_on_real_frames_read_back_to_the_detector_boxes(tmp_path):
     """``reference-perception kitti`` on real KITTI scans: lmd_ros reads the result files
     back, with the frame's calibration, to the detector's own lidar boxes. With the
     simulator's calibration in the writer (the old defect) boxes moved by up to 0.33 m."""
     from lidar_quality_training.lmd import dataset as D
 
-    root = realdata_kitti_dir()
+    root = require_realdata_kitti()
     base = root / "training"
-    if not (base / "calib").is_dir():
-        pytest.skip(f"real KITTI frames not found at {base} "
-                    "(set LQ_REALDATA_KITTI to the realdata_kitti directory)")
     out = tmp_path / "res"
     assert main(["kitti", "--root", str(root), "--out", str(out), "--heads", "0",
                  "--no-segmenter", "--quiet"]) == 0

@@ -32,3 +32,22 @@ def require_realdata() -> Path:
         pytest.skip(f"real sensor clouds not found in {d} ({len(missing)} missing, e.g. "
                     f"{missing[0]}.pcd): set LQ_REALDATA or provide ../shared/realdata")
     return d
+
+
+def realdata_kitti_dir() -> Path:
+    """The real labelled KITTI scans (``$LQ_REALDATA_KITTI`` or ``../shared/realdata_kitti``)."""
+    env = os.environ.get("LQ_REALDATA_KITTI")
+    return Path(env) if env else Path(__file__).resolve().parents[3] / "shared" / "realdata_kitti"
+
+
+def require_realdata_kitti() -> Path:
+    """The real KITTI directory (with ``training/{velodyne,label_2,calib}``), or a pytest
+    skip saying what is missing and how to fix it."""
+    import pytest
+
+    root = realdata_kitti_dir()
+    base = root / "training"
+    if not all((base / d).is_dir() for d in ("velodyne", "label_2", "calib")):
+        pytest.skip(f"real KITTI frames not found at {base} "
+                    "(set LQ_REALDATA_KITTI to the realdata_kitti directory)")
+    return root

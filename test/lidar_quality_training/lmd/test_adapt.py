@@ -63,3 +63,29 @@ def test_first_frames_alternate_between_sequences(bags):
     picked = adapt.first_frames(ds, 3)
     assert len(set(ds.frame_group[picked].tolist())) == 3
     assert adapt.first_frames(ds, None).tolist() == list(range(ds.n_frames))
+
+
+def test_real_kitti_scans_behind_the_reference_detector(tmp_path, capsys):
+    """Real labelled KITTI scans (skipped without them): three frames, so only the
+    few-coefficient candidates can be chosen, each with its interval; the pair loads."""
+    from realdata import require_realdata_kitti
+    from reference_perception.cli import main as perception_main
+
+    root = require_realdata_kitti()
+    res = tmp_path / "results"
+    assert perception_main(["kitti", "--root", str(root), "--out", str(res), "--heads", "0",
+                            "--no-segmenter", "--quiet"]) == 0
+    out = tmp_path / "adapted"
+    assert adapt.main(["--kitti-root", str(root), "--kitti-results", str(res), "--mode", "none",
+                       "--kitti-group-digits", "0", "--out", str(out), "--cache", "",
+                       "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "grouped by frame (3 frames)" in captured.out
+    assert "tree candidates need 5 frames" in captured.err
+    rec = read_manifest(out / "lmd_none_classifier.joblib")["training_data"]["adaptation"]
+    assert set(rec["chosen"].values()) <= {"shipped", "score", "recalibrate"}
+    lo, hi = rec["cross_validation"]["shipped"]["ci95"]["auroc"]
+    assert hi - lo > 0.02                    # three scans: a wide interval, and it says so
+    s = LmdSettings(proposal_mode="none")
+    load_models(LmdParameters(settings=s, classifier_path=str(out / "lmd_none_classifier.joblib"),
+                              regressor_path=str(out / "lmd_none_regressor.joblib")))
