@@ -395,8 +395,14 @@ class DomainCheck:
         p = params or DriftParameters()
         p.validate()
         self.action = p.drift_action
-        self.monitor = None if profile is None else DriftMonitor(
-            profile, window=p.drift_window, warn=p.drift_warn, error=p.drift_error)
+        self._profile, self._params = profile, p
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget the window: a new input stream (the next bag of a batch) starts afresh."""
+        p = self._params
+        self.monitor = None if self._profile is None else DriftMonitor(
+            self._profile, window=p.drift_window, warn=p.drift_warn, error=p.drift_error)
 
     def __call__(self, quantities: Mapping[str, object]) -> DomainVerdict:
         if self.monitor is None:

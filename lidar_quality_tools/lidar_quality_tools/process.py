@@ -6,7 +6,8 @@
 
 IN is a bag or a folder of bags (``perception_bag.resolve_bags``), any rosbag2 that ``ros2
 bag`` reads (``bag_io``: sqlite3 or MCAP, older metadata). A single bag gives the output bag
-OUT; several (or a folder) give OUT/<input name> each. The output bag (MCAP) holds every
+OUT; several (or a folder) give OUT/<input name> each, every bag a stream of its own (the
+processors' intensity decision, beam table and drift window start afresh). The output bag (MCAP) holds every
 input message unchanged (topic, type, log time, recorded QoS; types unknown here, e.g. a
 driver's raw packets, copied as bytes with one warning per type) plus what the nodes publish
 for each frame, at the log time of the frame's cloud: ``/lmd/output/{detections,
@@ -452,6 +453,12 @@ def _run(in_bag: Path, out_bag: Path | None, runners, *, progress: bool, window=
             "no_output": no_output_reasons(nodes, sorted(info.topics), dict(late))}
 
 
+def new_streams(runners) -> None:
+    """Every processor forgets its stream (intensity decision, drift window, ...)."""
+    for r in runners:
+        getattr(r.processor, "new_stream", lambda: None)()
+
+
 def _transform_feed(runners, warn) -> Callable:
     """Fresh transform buffers for this bag's processors that transform their inputs, and
     ``feed(message)``: /tf_static and /tf (tf2_msgs/msg/TFMessage) go into them, as the
@@ -779,6 +786,7 @@ def main(argv=None) -> int:
         ap.error(str(exc))
     summaries, unreadable = [], []
     for b, o in pairs:
+        new_streams(runners)   # each bag from scratch, as a run of its own would
         try:
             summaries.append(process_one(b, o, runners, results=args.results,
                                          topics=dict(args.topic),

@@ -461,10 +461,9 @@ class LmdProcessor:
         self.thresholds = thresholds or ConfidenceThresholds()
         #: Autoware output: existence_probability without a confidence (< 0: the detector's)
         self.existence_fallback = float(existence_fallback)
-        self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
-        self._padding = PaddingNote()
         #: live inputs against the models' training data (``domain_profile``)
         self.domain = DomainCheck(getattr(models, "domain_profile", None), drift)
+        self.new_stream()
         self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
         #: for whoever builds the buffer (process_bag: one per bag)
         self.transform_tolerance = float(transform_tolerance)
@@ -472,6 +471,13 @@ class LmdProcessor:
         from vision_msgs.msg import Detection3DArray
         self._Quality, self._QualityArray = DetectionQuality, DetectionQualityArray
         self._DetArray = Detection3DArray
+
+    def new_stream(self) -> None:
+        """Forget what one input stream taught: the intensity scale decided, the padding
+        note, the drift window (``process_bag``: each bag of a batch is a new stream)."""
+        self.intensity = IntensityScale(self.settings.intensity_scale)
+        self._padding = PaddingNote()
+        self.domain.reset()
 
     def process(self, cloud, detections, proposals, *, markers: bool = False) -> LmdOutputs:
         """One frame (``detections`` None in exact mode, ``proposals`` None in none mode).

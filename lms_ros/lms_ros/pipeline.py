@@ -730,14 +730,21 @@ class LmsProcessor:
         self.settings = settings
         self.models = models
         self.all_fields = all_fields
-        self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
-        self._padding = PaddingNote()
-        #: per-beam elevations estimated from the clouds, kept for the node's lifetime
-        self.beam_table = beams.BeamTable(MAX_CHANNELS)
         #: live metrics against the models' training data (``domain_profile``)
         self.domain = DomainCheck(getattr(models, "domain_profile", None), drift)
+        self.new_stream()
         from lidar_quality_msgs.msg import SegmentQuality, SegmentQualityArray
         self._Quality, self._QualityArray = SegmentQuality, SegmentQualityArray
+
+    def new_stream(self) -> None:
+        """Forget what one input stream taught: the intensity scale decided, the padding
+        note, the per-beam elevations estimated from its clouds (kept for a node's
+        lifetime: one sensor), the drift window (``process_bag``: each bag of a batch is a
+        new stream)."""
+        self.intensity = IntensityScale(self.settings.intensity_scale)
+        self._padding = PaddingNote()
+        self.beam_table = beams.BeamTable(MAX_CHANNELS)
+        self.domain.reset()
 
     def process(self, points_msg, probabilities_msg=None, *, markers: bool = False
                 ) -> LmsOutputs:

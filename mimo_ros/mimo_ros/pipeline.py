@@ -679,7 +679,6 @@ class MimoProcessor:
             raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
         self.settings, self.models, self.scores = settings, models, scores
         self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
-        self.intensity = IntensityScale(settings.intensity_scale)  # one per stream
         #: for whoever builds the buffer (process_bag: one per bag)
         self.transform_tolerance = float(transform_tolerance)
         #: DetectedObjects output (Autoware) instead of Detection3DArray
@@ -688,6 +687,13 @@ class MimoProcessor:
         self.thresholds = thresholds
         #: live inputs against the models' training data (``domain_profile``)
         self.domain = DomainCheck(getattr(models, "domain_profile", None), drift)
+        self.new_stream()
+
+    def new_stream(self) -> None:
+        """Forget what one input stream taught: the intensity scale decided, the drift
+        window (``process_bag``: each bag of a batch is a new stream)."""
+        self.intensity = IntensityScale(self.settings.intensity_scale)
+        self.domain.reset()
 
     def process(self, heads: Sequence, variances: Sequence | None = None, cloud=None, *,
                 markers: bool = False) -> MimoFrameOutputs:

@@ -427,3 +427,20 @@ def test_detections_in_another_frame_with_tf_static(tmp_path):
                                    [e.confidence for e in a.detections], rtol=0, atol=1e-9)
         np.testing.assert_allclose([e.predicted_iou for e in b.detections],
                                    [e.predicted_iou for e in a.detections], rtol=0, atol=1e-9)
+
+
+def test_each_bag_of_a_batch_is_a_stream_of_its_own(bag, tmp_path):
+    """Two copies of a bag in one run give byte-identical outputs: the second does not
+    inherit the first one's drift window (nor intensity decision, beam table)."""
+    import shutil
+
+    src = tmp_path / "in"
+    for name in ("a", "b"):
+        shutil.copytree(bag, src / name)
+    out = tmp_path / "out"
+    assert main(["--bag", str(src), "--out", str(out), "--no-progress"]) == 0
+    first, second = messages(out / "a", OUT_TOPICS), messages(out / "b", OUT_TOPICS)
+    assert len(first) == len(second) > 0
+    assert first == second
+    quality = decoded(out / "b", "/lmd/output/quality")
+    assert [q.drift_window_frames for q in quality] == list(range(1, N_FRAMES + 1))
