@@ -409,15 +409,18 @@ class DomainCheck:
             return DomainVerdict({"drift": "off: the models record no training-data profile "
                                            "(trained before profiles; retrain to monitor)"})
         r = self.monitor.add(quantities)
-        values = {"drift.score": round(r.score, 3), "drift.level": LEVEL_NAMES[r.level],
+        scored = r.scored > 0       # else: too few frames, or too few values of each quantity
+        # as the quality messages say it: no score (not a 0) while the window fills
+        values = {"drift.level": LEVEL_NAMES[r.level] if scored else "warming up",
                   "drift.window_frames": r.frames, "drift.scored_quantities": r.scored}
+        if scored:
+            values["drift.score"] = round(r.score, 3)
         if r.drifted:
             values["drift.quantities"] = ", ".join(k for k, _ in r.drifted)
         issue = None
         if r.level >= WARN:
             issue = (f"inputs unlike the models' training data (drift {r.score:.2f} over "
                      f"{r.frames} frames): {r.text}")
-        scored = r.scored > 0       # else: too few frames, or too few values of each quantity
         return DomainVerdict(values, issue, r.level == ERROR,
                              r.level == ERROR and self.action == "passthrough",
                              LEVEL_NAMES[r.level] if scored else "warming up",

@@ -161,6 +161,9 @@ def test_domain_check_verdict_as_the_quality_messages_carry_it():
         states = [check({"points per frame": [rng.normal(1e5, 1e3)]}) for _ in range(30)]
         assert [v.state for v in states[:29]] == ["warming up"] * 29
         assert all(np.isnan(v.score) and not v.passthrough for v in states[:29])
+        # /diagnostics says the same: no score (not a 0) while the window fills
+        assert all(v.values["drift.level"] == "warming up" and "drift.score" not in v.values
+                   for v in states[:29])
         assert [v.frames for v in states] == list(range(1, 31))
         assert states[-1].state == "OK"
         assert states[-1].score == pytest.approx(states[-1].values["drift.score"], abs=5e-4)
