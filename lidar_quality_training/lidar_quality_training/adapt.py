@@ -45,7 +45,7 @@ from lidar_quality_core.recalibration import (RecalibratedClassifier, Recalibrat
 
 __all__ = ["STRATEGIES", "CONTINUE_ROUNDS", "AdaptData", "AdaptResult", "fit_candidate",
            "adapt", "evaluate", "predict", "save_adapted", "subset_frames",
-           "frame_blocks", "one_se_choice", "profile_of", "BLOCK_FRAMES", "SIMPLE",
+           "frame_blocks", "take_in_turn", "one_se_choice", "profile_of", "BLOCK_FRAMES", "SIMPLE",
            "MIN_FRAMES_FOR_TREES"]
 
 STRATEGIES = ("shipped", "score", "recalibrate", "continue", "fresh")
@@ -129,6 +129,18 @@ def frame_blocks(frame_group, block_frames: int = BLOCK_FRAMES) -> np.ndarray:
         pos[k] = seen.get(name, 0)
         seen[name] = pos[k] + 1
     return np.char.add(np.char.add(g, "/"), (pos // block_frames).astype(str))
+
+
+def take_in_turn(sequence_of_frame, n: int | None) -> np.ndarray:
+    """Sorted indices of ``n`` frames taken in turn from each sequence, in order within
+    one (so five frames of two bags are not five of the first); all for None."""
+    seq = np.asarray(sequence_of_frame)
+    idx = np.arange(len(seq))
+    if n is None or n >= len(idx):
+        return idx
+    by_seq = [idx[seq == s] for s in dict.fromkeys(seq.tolist())]
+    order = [b[k] for k in range(max(len(b) for b in by_seq)) for b in by_seq if k < len(b)]
+    return np.sort(np.asarray(order[:max(n, 0)], np.int64))
 
 
 def subset_frames(data: AdaptData, frames: Sequence[str]) -> AdaptData:

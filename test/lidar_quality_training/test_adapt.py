@@ -114,3 +114,11 @@ def test_unknown_candidate_and_empty_data(base):
         A.adapt(domain(3, 10), clf, reg, strategies=("shipped", "magic"))
     with pytest.raises(ValueError, match="no labelled rows"):
         A.adapt(domain(3, 10).rows(np.zeros(0, int)), clf, reg)
+
+
+def test_take_in_turn():
+    seq = np.array(["a"] * 4 + ["b"] * 2 + ["c"])
+    assert A.take_in_turn(seq, 3).tolist() == [0, 4, 6]          # one of each first
+    assert A.take_in_turn(seq, 5).tolist() == [0, 1, 4, 5, 6]
+    assert A.take_in_turn(seq, None).tolist() == list(range(7))
+    assert A.take_in_turn(seq, 99).tolist() == list(range(7))

@@ -43,14 +43,8 @@ def adapt_data(ds: LmdDataset) -> A.AdaptData:
 
 
 def first_frames(ds: LmdDataset, n: int | None) -> np.ndarray:
-    """Frame rows to use: all, or ``n`` taken in turn from each sequence (so five frames
-    of two bags are not five of the first)."""
-    frames = np.arange(ds.n_frames)
-    if n is None or n >= len(frames):
-        return frames
-    by_group = [frames[ds.frame_group == g] for g in ds.groups]
-    order = [b[k] for k in range(max(len(b) for b in by_group)) for b in by_group if k < len(b)]
-    return np.sort(np.asarray(order[:n], np.int64))
+    """Frame rows to use: all, or ``n`` taken in turn from each sequence."""
+    return A.take_in_turn(ds.frame_group, n)
 
 
 def profile_extra(ds: LmdDataset, keep_frames: np.ndarray, rows: np.ndarray):

@@ -61,12 +61,7 @@ def first_frames(ds: SegmentDataset, n: int | None) -> np.ndarray:
     Frames are those with at least one kept segment."""
     pairs = np.unique(np.stack([ds.sequence, ds.frame], axis=1), axis=0) if len(ds) else \
         np.zeros((0, 2), np.int64)
-    if n is not None and n < len(pairs):
-        by_seq = [pairs[pairs[:, 0] == s] for s in np.unique(pairs[:, 0])]
-        order = [b[k] for k in range(max(len(b) for b in by_seq)) for b in by_seq
-                 if k < len(b)]
-        pairs = np.asarray(order[:max(n, 0)], np.int64).reshape(-1, 2)
-        pairs = pairs[np.lexsort((pairs[:, 1], pairs[:, 0]))]
+    pairs = pairs[A.take_in_turn(pairs[:, 0], n)]
     names = np.asarray(ds.sequences, dtype=str)
     return np.asarray([f"{names[s]}/{f}" for s, f in pairs.tolist()], dtype=str)
 

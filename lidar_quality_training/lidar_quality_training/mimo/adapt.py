@@ -48,14 +48,8 @@ def adapt_data(ds: MimoDataset, use_points: bool) -> A.AdaptData:
 
 
 def first_frames(ds: MimoDataset, n: int | None) -> np.ndarray:
-    """Frame rows to use: all, or ``n`` taken in turn from each sequence (so five frames
-    of two bags are not five of the first)."""
-    frames = np.arange(ds.n_frames)
-    if n is None or n >= len(frames):
-        return frames
-    by_group = [frames[ds.frame_group == g] for g in ds.groups]
-    order = [b[k] for k in range(max(len(b) for b in by_group)) for b in by_group if k < len(b)]
-    return np.sort(np.asarray(order[:max(n, 0)], np.int64))
+    """Frame rows to use: all, or ``n`` taken in turn from each sequence."""
+    return A.take_in_turn(ds.frame_group, n)
 
 
 def profile_extra(ds: MimoDataset, rows: np.ndarray):
