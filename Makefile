@@ -19,7 +19,7 @@ help:
 	@echo "make test   run the test suite (set-up and build on first use)"
 	@echo "make reference-models   retrain the reference perception under models/reference"
 	@echo "make meta-models   retrain the LMD / LMS / MIMO meta models (models/lmd, lms, mimo) and write their reports"
-	@echo "make domain-report   the domain-shift benchmark: drift monitors, LMD adaptation with 1-50 labelled frames: out/domain/report.md"
+	@echo "make domain-report   the domain-shift benchmark: drift monitors and adaptation of LMD, LMS, MIMO: out/domain/report.md (~15 min)"
 	@echo "make fuzz | soak   hardening runs (malformed input; 10 minutes at 10 Hz)"
 	@echo "make setup | build | bench | clean | distclean | lock"
 	@echo "LQ_SHM_SEGMENT_MB=N make ...   Fast DDS shared-memory segment of N MiB (default 64: clouds up to 66 MB)"
