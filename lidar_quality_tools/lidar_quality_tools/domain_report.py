@@ -67,7 +67,7 @@ def _shift_scores(case: str, arrays) -> None:
     if case == "scores x 0.6":
         f = lambda s: 0.6 * s  # noqa: E731 - the case's definition, read beside the other
     elif case == "scores recalibrated":
-        f = lambda s: float(1.0 / (1.0 + np.exp(-(logit(s) - 1.0) / 2.0)))  # noqa: E731
+        f = lambda s: float(1.0 / (1.0 + np.exp(-(logit(s) - 1.0) / 2.0)))  # noqa: E731 - as above
     else:
         return
     for arr in arrays:
