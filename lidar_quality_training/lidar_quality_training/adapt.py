@@ -40,13 +40,14 @@ import numpy as np
 
 from lidar_quality_core import meta_model
 from lidar_quality_core import metrics as M
+from .report import round_floats
 from lidar_quality_core.recalibration import (RecalibratedClassifier, RecalibratedRegressor,
                                               logit)
 
 __all__ = ["STRATEGIES", "CONTINUE_ROUNDS", "AdaptData", "AdaptResult", "fit_candidate",
            "adapt", "evaluate", "predict", "save_adapted", "subset_frames",
-           "frame_blocks", "take_in_turn", "one_se_choice", "profile_of", "BLOCK_FRAMES", "SIMPLE",
-           "MIN_FRAMES_FOR_TREES"]
+           "frame_blocks", "take_in_turn", "add_adapt_arguments", "candidates_of",
+           "one_se_choice", "profile_of", "BLOCK_FRAMES", "SIMPLE", "MIN_FRAMES_FOR_TREES"]
 
 STRATEGIES = ("shipped", "score", "recalibrate", "continue", "fresh")
 BLOCK_FRAMES = 5
@@ -411,14 +412,6 @@ def adapt(data: AdaptData, base_classifier, base_regressor, *, kind: str = "xgbo
 
 
 # --------------------------------------------------------------------------- saving
-def _round(d):
-    if isinstance(d, dict):
-        return {k: _round(v) for k, v in d.items()}
-    if isinstance(d, (list, tuple)):
-        return [_round(v) for v in d]
-    if isinstance(d, (float, np.floating)):
-        return round(float(d), 5) if np.isfinite(d) else None
-    return d
 
 
 def profile_of(data: AdaptData, extra: dict | None = None,
@@ -456,16 +449,16 @@ def save_adapted(result: AdaptResult, out, prefix: str, data: AdaptData, *,
                 "adapted_from": {"files": [str(p) for p in base_paths],
                                  "model_id": base_manifest.get("model_id"),
                                  "sources": base_td.get("sources")},
-                "adaptation": _round(result.record())}
+                "adaptation": round_floats(result.record())}
     for k in ("target", "tp_rule", "use_points", "class_aware", "merge_settings"):
         if k in base_td:
             training[k] = base_td[k]
     profile = profile_of(data, profile_extra, profile_groups, base_td.get("domain_profile"))
-    metrics = {"cross_validation": _round(result.cv)}
+    metrics = {"cross_validation": round_floats(result.cv)}
     cpath, rpath = meta_model.save_pair(out, prefix, result.classifier, result.regressor,
                                         data.feature_names, training_data=training,
                                         classifier_metrics=metrics, regressor_metrics=metrics,
-                                        compress=3, domain_profile=_round(profile))
+                                        compress=3, domain_profile=round_floats(profile))
     (Path(out) / "MODEL_CARD.md").write_text(model_card(result, title=title, sources=sources,
                                                         base_paths=base_paths,
                                                         command=command, files=(cpath, rpath)))
@@ -519,6 +512,27 @@ def model_card(result: AdaptResult, *, title: str, sources: list, base_paths, co
     return "\n".join(lines) + "\n"
 
 
+def add_adapt_arguments(ap, shipped: str = "the shipped one") -> None:
+    """The options every ``*-adapt`` command has: base pair, output, frames, candidates,
+    folds, seed (``shipped``: which base pair the defaults are, in words)."""
+    ap.add_argument("--base-classifier", type=Path, default=None,
+                    help=f"meta classifier to adapt (default: {shipped})")
+    ap.add_argument("--base-regressor", type=Path, default=None,
+                    help=f"meta regressor to adapt (default: {shipped})")
+    ap.add_argument("--out", type=Path, required=True, help="output model directory")
+    ap.add_argument("--frames", type=int, default=None,
+                    help="use only this many labelled frames (taken in turn from each sequence)")
+    ap.add_argument("--candidates", default=",".join(STRATEGIES),
+                    help=f"comma-separated subset of {', '.join(STRATEGIES)}")
+    ap.add_argument("--folds", type=int, default=N_FOLDS, help="cross-validation folds")
+    ap.add_argument("--seed", type=int, default=0)
+
+
+def candidates_of(args) -> tuple[str, ...]:
+    """``--candidates`` as a tuple of names."""
+    return tuple(c.strip() for c in args.candidates.split(",") if c.strip())
+
+
 def print_summary(prog: str, result: AdaptResult, files) -> None:
     print(f"{prog}: {result.n_frames} frames, {result.n_rows} rows ({result.n_tp} TP); "
           f"{result.scheme}")
@@ -533,4 +547,4 @@ def print_summary(prog: str, result: AdaptResult, files) -> None:
 
 
 def dumps(result: AdaptResult) -> str:
-    return json.dumps(_round(result.record()), indent=1)
+    return json.dumps(round_floats(result.record()), indent=1)

@@ -15,10 +15,22 @@ from typing import Iterable, Sequence
 
 import numpy as np
 
-__all__ = ["fmt", "markdown_table", "bullets", "code_block", "Section", "ModelCard",
+__all__ = ["fmt", "round_floats", "markdown_table", "bullets", "code_block", "Section", "ModelCard",
            "put_section", "update_card"]
 
 MISSING = "–"
+
+
+def round_floats(d, digits: int = 5):
+    """``d`` (dicts, lists, tuples, floats) with every float rounded to ``digits`` and
+    non-finite floats as None: manifests' and summaries' JSON."""
+    if isinstance(d, dict):
+        return {k: round_floats(v, digits) for k, v in d.items()}
+    if isinstance(d, (list, tuple)):
+        return [round_floats(v, digits) for v in d]
+    if isinstance(d, (float, np.floating)):
+        return round(float(d), digits) if np.isfinite(d) else None
+    return d
 
 
 def fmt(x, digits: int = 3) -> str:

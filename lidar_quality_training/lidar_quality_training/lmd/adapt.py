@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -63,24 +62,14 @@ def main(argv=None) -> int:
                     help="feature tables (Parquet) instead of bags / KITTI")
     ap.add_argument("--mode", choices=("exact", "threshold", "none"), default="threshold",
                     help="proposal mode of the models adapted (the node's proposal_mode)")
-    ap.add_argument("--base-classifier", type=Path, default=None,
-                    help="meta classifier to adapt (default: the shipped one of --mode)")
-    ap.add_argument("--base-regressor", type=Path, default=None,
-                    help="meta regressor to adapt (default: the shipped one of --mode)")
-    ap.add_argument("--out", type=Path, required=True, help="output model directory")
-    ap.add_argument("--frames", type=int, default=None,
-                    help="use only this many labelled frames (taken in turn from each sequence)")
-    ap.add_argument("--candidates", default=",".join(A.STRATEGIES),
-                    help=f"comma-separated subset of {', '.join(A.STRATEGIES)}")
-    ap.add_argument("--folds", type=int, default=A.N_FOLDS, help="cross-validation folds")
-    ap.add_argument("--seed", type=int, default=0)
+    A.add_adapt_arguments(ap, "the shipped one of --mode")
     a = ap.parse_args(argv)
     command = "lmd-adapt " + " ".join(shlex.quote(x) for x in (sys.argv[1:] if argv is None
                                                                  else argv))
     from lmd_ros.pipeline import default_model_paths
 
     try:
-        cands = tuple(c.strip() for c in a.candidates.split(",") if c.strip())
+        cands = A.candidates_of(a)
         dc, dr = default_model_paths(a.mode)
         cpath, rpath = a.base_classifier or dc, a.base_regressor or dr
         if a.features:

@@ -49,7 +49,7 @@ from lidar_quality_core.model_store import ModelStoreError
 from .. import feature_table
 from ..distributed_training import (LocalTraining, add_scheduler_option, check_scheduler,
                                     training_backend)
-from ..report import ModelCard, bullets, code_block, fmt, markdown_table
+from ..report import ModelCard, bullets, code_block, fmt, markdown_table, round_floats
 from .dataset import (TP_IOU, LmdDataset, Progress, add_source_args, load_from_args,
                       settings_for, settings_from_args)
 
@@ -101,14 +101,6 @@ def cv_metrics(ds: LmdDataset, kind: str, *, n_folds: int, seed: int = 0, n_jobs
     return out
 
 
-def _round(d):
-    if isinstance(d, dict):
-        return {k: _round(v) for k, v in d.items()}
-    if isinstance(d, (list, tuple)):
-        return [_round(v) for v in d]
-    if isinstance(d, (float, np.floating)):
-        return round(float(d), 5) if np.isfinite(d) else None
-    return d
 
 
 def _sources(ds: LmdDataset) -> list[str]:
@@ -184,10 +176,10 @@ def train(train_sets: dict, test_sets: dict | None, out: Path, *, kind: str = "x
             groups=ds.group, extra_groups={"detector score": ds.group,
                                            "points per frame": ds.frame_group[known]})
         cpath, rpath = meta_model.save_pair(out, f"lmd_{mode}", clf, reg, ds.feature_names,
-                                            training_data=_round(training),
-                                            classifier_metrics=_round(cmet),
-                                            regressor_metrics=_round(rmet), compress=3,
-                                            domain_profile=_round(profile))
+                                            training_data=round_floats(training),
+                                            classifier_metrics=round_floats(cmet),
+                                            regressor_metrics=round_floats(rmet), compress=3,
+                                            domain_profile=round_floats(profile))
         results[mode] = {"training": training, "classifier": cmet, "regressor": rmet,
                          "n_features": len(ds.feature_names),
                          "files": [str(cpath), str(rpath)],

@@ -73,17 +73,7 @@ def main(argv=None) -> int:
                          "SemanticKITTI-style roots")
     ap.add_argument("--features", action="append", default=None, metavar="PATH",
                     help="feature tables (Parquet; repeatable) instead of --data")
-    ap.add_argument("--base-classifier", type=Path, default=None,
-                    help="meta classifier to adapt (default: the shipped one)")
-    ap.add_argument("--base-regressor", type=Path, default=None,
-                    help="meta regressor to adapt (default: the shipped one)")
-    ap.add_argument("--out", type=Path, required=True, help="output model directory")
-    ap.add_argument("--frames", type=int, default=None,
-                    help="use only this many labelled frames (taken in turn from each sequence)")
-    ap.add_argument("--candidates", default=",".join(A.STRATEGIES),
-                    help=f"comma-separated subset of {', '.join(A.STRATEGIES)}")
-    ap.add_argument("--folds", type=int, default=A.N_FOLDS, help="cross-validation folds")
-    ap.add_argument("--seed", type=int, default=0)
+    A.add_adapt_arguments(ap)
     add_data_arguments(ap)
     a = ap.parse_args(argv)
     command = "lms-adapt " + " ".join(shlex.quote(x) for x in (sys.argv[1:] if argv is None
@@ -91,7 +81,7 @@ def main(argv=None) -> int:
     from lms_ros.pipeline import default_model_paths
 
     try:
-        cands = tuple(c.strip() for c in a.candidates.split(",") if c.strip())
+        cands = A.candidates_of(a)
         dc, dr = default_model_paths()
         cpath, rpath = a.base_classifier or dc, a.base_regressor or dr
         if a.features:

@@ -22,7 +22,6 @@ from __future__ import annotations
 import argparse
 import shlex
 import sys
-from pathlib import Path
 
 import numpy as np
 
@@ -66,17 +65,7 @@ def main(argv=None) -> int:
     ap.add_argument("--use-points", action=argparse.BooleanOptionalAction, default=None,
                     help="adapt the pair with the LMD point features (mimo_points_*) or "
                          "without (mimo_*; default: the node's use_points default)")
-    ap.add_argument("--base-classifier", type=Path, default=None,
-                    help="meta classifier to adapt (default: the shipped one)")
-    ap.add_argument("--base-regressor", type=Path, default=None,
-                    help="meta regressor to adapt (default: the shipped one)")
-    ap.add_argument("--out", type=Path, required=True, help="output model directory")
-    ap.add_argument("--frames", type=int, default=None,
-                    help="use only this many labelled frames (taken in turn from each sequence)")
-    ap.add_argument("--candidates", default=",".join(A.STRATEGIES),
-                    help=f"comma-separated subset of {', '.join(A.STRATEGIES)}")
-    ap.add_argument("--folds", type=int, default=A.N_FOLDS, help="cross-validation folds")
-    ap.add_argument("--seed", type=int, default=0)
+    A.add_adapt_arguments(ap)
     a = ap.parse_args(argv)
     command = "mimo-adapt " + " ".join(shlex.quote(x) for x in (sys.argv[1:] if argv is None
                                                                   else argv))
@@ -84,7 +73,7 @@ def main(argv=None) -> int:
 
     use_points = MimoSettings().use_points if a.use_points is None else a.use_points
     try:
-        cands = tuple(c.strip() for c in a.candidates.split(",") if c.strip())
+        cands = A.candidates_of(a)
         dc, dr = default_model_paths(use_points)
         cpath, rpath = a.base_classifier or dc, a.base_regressor or dr
         if a.features:
