@@ -11,6 +11,8 @@ from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
                              SingleThreadedExecutor)
 from rclpy.signals import SignalHandlerOptions
 
+from .threads import name_os_thread
+
 
 class _Stoppable:
     """An executor that can stop spinning and drain before it shuts down.
@@ -135,6 +137,7 @@ def run_node(node_factory, args=None, *, num_threads: int = 1) -> int:
 
 
 def _spin(executor, stop: threading.Event, crashed: list) -> None:
+    name_os_thread("lq_executor")
     try:
         executor.spin()
     except ExternalShutdownException:

@@ -69,7 +69,7 @@ from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import check_fields, group, param
-from lidar_quality_core.pointcloud import CloudFormatError, PaddingNote, xyz_intensity
+from lidar_quality_core.pointcloud import CloudFormatError, PaddingNote, padding_mask, xyz_intensity
 from lidar_quality_core.thresholds import (ConfidenceThresholds, class_thresholds_param,
                                            range_thresholds_param)
 from lidar_quality_core.transforms import Transform, input_transforms, transform_tolerance_param
@@ -320,7 +320,7 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
     scale = intensity if intensity is not None else IntensityScale(settings.intensity_scale)
     inten = scale.scale(inten)
     # exact (0, 0, 0): an organized cloud's no-return padding, not a point (NaN stays truthy)
-    padding = ~np.any(xyz, axis=1)
+    padding = padding_mask(xyz)
     n_padding = int(np.count_nonzero(padding))
     if n_padding:
         xyz = xyz.copy()

@@ -459,11 +459,12 @@ def frame_features(head_msgs: Sequence, variance_msgs: Sequence | None = None,
                                        + [("input/points", cloud_msg)])
         transforms = {}
     if cloud_msg is not None and settings.use_points:
+        from lidar_quality_core.pointcloud import padding_mask
         xyz, inten = _decode_cloud(cloud_msg)
         if inten is not None:
             scale = intensity if intensity is not None else IntensityScale(settings.intensity_scale)
             inten = scale.scale(inten)
-        padding = ~np.any(xyz, axis=1)  # an organized cloud's (0, 0, 0): no point (as LMD)
+        padding = padding_mask(xyz)  # an organized cloud's (0, 0, 0): no point (as LMD)
         if padding.any():
             xyz = np.array(xyz, dtype=np.float32)
             xyz[padding] = np.nan
