@@ -265,8 +265,14 @@ class QualityNode(Node):
         """Subscribe to ``topics`` (matched by stamp, frames to :meth:`process`), with the
         input watchdog; ``hints``: per input, what else fixes its absence."""
         sync = self.declare_sync_parameters() if sync is None else sync
+        # use_sim_time's /clock (every few ms from a bag player) and /tf on the input
+        # thread too: each message would otherwise wake the executor (see InputReader)
+        also_read = [sub for sub in self.subscriptions if sub.topic_name == "/clock"]
+        tf = getattr(self, "tf", None)
+        also_read += tf.subscriptions if tf is not None else []
         self.inputs = SyncedInputs(self, topics, self._run_frame, diagnostics=self.diag,
-                                   watchdog=self.new_watchdog(len(topics)), **sync, **kwargs)
+                                   watchdog=self.new_watchdog(len(topics)), also_read=also_read,
+                                   **sync, **kwargs)
         self.watch_inputs(hints)
         return self.inputs
 

@@ -1,6 +1,7 @@
 """``main()`` helper for the node executables: init, spin, orderly exit on SIGINT / SIGTERM."""
 from __future__ import annotations
 
+import gc
 import signal
 import sys
 import threading
@@ -11,7 +12,7 @@ from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
                              SingleThreadedExecutor)
 from rclpy.signals import SignalHandlerOptions
 
-from .threads import name_os_thread
+from .threads import keep_freed_memory, name_os_thread
 
 
 class _Stoppable:
@@ -82,6 +83,7 @@ def run_node(node_factory, args=None, *, num_threads: int = 1) -> int:
     if usage is not None:  # `lmd_node --help` prints this instead of starting the node
         print(usage)
         return 0
+    keep_freed_memory()
     rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
     stop = threading.Event()
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -89,6 +91,10 @@ def run_node(node_factory, args=None, *, num_threads: int = 1) -> int:
     code = 0
     try:
         node = node_factory()
+        # the start-up objects (modules, models: about a million) out of the collector's
+        # way, so that a full collection in a frame does not walk them all again
+        gc.collect()
+        gc.freeze()
         # One thread by default: the nodes' callbacks only queue frames for their worker
         # thread, and a MultiThreadedExecutor costs ~3 ms of CPU per callback here; under
         # use_sim_time (a /clock message every few ms) that was most of a core per node.

@@ -24,6 +24,7 @@ from rclpy.event_handler import SubscriptionEventCallbacks
 from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.subscription import Subscription
 
 from .qos import SENSOR_QOS
 from .threads import name_os_thread
@@ -87,7 +88,10 @@ class OrderedWorker:
             self._thread.join(timeout)
 
 
-class _ReadByInputReader(CallbackGroup):
+WITH_INFO = Subscription.CallbackType.WithMessageInfo
+
+
+class ReadByInputReader(CallbackGroup):
     """A callback group no executor runs: its subscriptions are read by an InputReader."""
 
     def can_execute(self, entity) -> bool:
@@ -112,18 +116,32 @@ class InputReader:
     for 2 timer callbacks, 2-3 ms of CPU per frame on the executor thread alone. Here
     the wait set holds the inputs, their events and one guard condition, is allocated
     once, and a wake costs a few calls into rcl (the calls rclpy's own
-    ``wait_for_message`` makes). The subscriptions (and so their event handlers) must be
-    in a :class:`_ReadByInputReader` group so that the executor never waits on them."""
+    ``wait_for_message`` makes). Create the ``subscriptions`` in a
+    :class:`ReadByInputReader` group, so that the executor never takes their messages.
 
-    def __init__(self, node, subscriptions: Sequence, name: str, on_error: Callable[[str], None]):
-        self._subs = list(subscriptions)
-        self._events = [h for s in self._subs for h in s.event_handlers]
+    ``optional`` subscriptions (use_sim_time's /clock, /tf) are read here too, moved out
+    of the executor with their events; one of them destroyed under us (use_sim_time
+    turned off) is left out from then on, while a destroyed input ends the reader."""
+
+    def __init__(self, node, subscriptions: Sequence, name: str, on_error: Callable[[str], None],
+                 optional: Sequence = ()):
+        self._required = list(subscriptions)
+        # optional ones first: a transform or clock that came with a frame is in before it
+        self._subs = [s for s in optional if s not in self._required] + self._required
+        for sub in self._subs:  # the executor never waits on them, nor on their events
+            group = sub.callback_group
+            if not isinstance(group, ReadByInputReader):
+                group = ReadByInputReader()
+                for entity in (sub, *sub.event_handlers):
+                    entity.callback_group = group
+                    group.add_entity(entity)
         self._context = node.context
         self._on_error = on_error
         self._stopping = False
         self._wake = GuardCondition(None, None, context=self._context)
         with self._context.handle:
-            self._wait_set = _rclpy.WaitSet(len(self._subs), 1, 0, 0, 0, len(self._events),
+            self._wait_set = _rclpy.WaitSet(len(self._subs), 1, 0, 0, 0,
+                                            sum(len(s.event_handlers) for s in self._subs),
                                             self._context.handle)
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self._thread.start()
@@ -139,46 +157,65 @@ class InputReader:
                 self._on_error(f"input reader: {type(exc).__name__}: {exc}")
                 time.sleep(0.1)
                 continue
-            for callback, what, data in todo:  # handles released: a callback may take time
+            for callback, what, args in todo:  # handles released: a callback may take time
                 if self._stopping:
                     return
                 try:
-                    callback(data)
+                    callback(*args)
                 except Exception as exc:  # noqa: BLE001 - a bug costs this message, not the reader
                     self._on_error(f"{what} callback failed: {type(exc).__name__}: {exc}")
 
+    def _hold(self, held: ExitStack) -> list:
+        """Enter every subscription and event handle (so nothing is destroyed under a wait);
+        the subscriptions still alive."""
+        alive = []
+        for sub in self._subs:
+            try:
+                for entity in (sub.handle, *sub.event_handlers):
+                    held.enter_context(entity)
+            except InvalidHandle:
+                if sub in self._required:
+                    raise
+                continue  # an optional one destroyed (use_sim_time off): not read again
+            alive.append(sub)
+        if len(alive) < len(self._subs):
+            self._subs = alive
+        return alive
+
     def _wait_and_take(self) -> list:
         ws = self._wait_set
-        with ExitStack() as held:  # nothing is destroyed under a wait
-            handles = [s.handle for s in self._subs]
-            for h in (*handles, self._wake.handle, self._context.handle, *self._events):
+        with ExitStack() as held:
+            subs = self._hold(held)
+            for h in (self._wake.handle, self._context.handle):
                 held.enter_context(h)
             ws.clear_entities()
-            for h in handles:
-                ws.add_subscription(h)
+            for sub in subs:
+                ws.add_subscription(sub.handle)
             ws.add_guard_condition(self._wake.handle)
-            for e in self._events:
+            events = [e for sub in subs for e in sub.event_handlers]
+            for e in events:
                 e.add_to_wait_set(ws)
             # a timeout only so that a node destroyed without close() lets the thread go
             ws.wait(500_000_000)
             ready = ws.get_ready_entities("subscription")
             todo = []
-            for e in self._events:
+            for e in events:
                 if e.is_ready(ws):
                     data = e.take_data()
                     if data:
-                        todo.append((e.callback, "QoS event", data))
-            for sub, h in zip(self._subs, handles):
-                if h.pointer not in ready:
+                        todo.append((e.callback, "QoS event", (data,)))
+            for sub in subs:
+                if sub.handle.pointer not in ready:
                     continue
                 try:
-                    info = h.take_message(sub.msg_type, sub.raw)
+                    info = sub.handle.take_message(sub.msg_type, sub.raw)
                 except Exception as exc:  # noqa: BLE001 - one bad message, not the reader
                     self._on_error(f"cannot take a message on {sub.topic_name}: "
                                    f"{type(exc).__name__}: {exc}")
                     continue
-                if info is not None:
-                    todo.append((sub.callback, f"input {sub.topic_name}", info[0]))
+                if info is not None:  # (message, message info), as the executor hands them
+                    args = info if sub._callback_type is WITH_INFO else info[:1]
+                    todo.append((sub.callback, f"input {sub.topic_name}", args))
             return todo
 
     def stop(self, timeout: float = 5.0) -> None:
@@ -207,7 +244,11 @@ class SyncedInputs:
     decode are dropped and counted (``undecodable_input``).
 
     ``watchdog`` (an ``InputWatchdog`` over the same inputs) hears of every arrival and
-    every matched set, so the node can tell why nothing comes out."""
+    every matched set, so the node can tell why nothing comes out.
+
+    ``also_read``: other subscriptions of the node that the input thread reads too (the
+    /clock of use_sim_time, /tf): frequent small messages that would otherwise wake the
+    executor (see :class:`InputReader`)."""
 
     def __init__(self, node, topics: Sequence[tuple[type, str]],
                  callback: Callable[[SyncedSet], None], *, mode: str = "exact",
@@ -215,7 +256,7 @@ class SyncedInputs:
                  qos=SENSOR_QOS, diagnostics=None,
                  on_arrival: Callable[[int, int], None] | None = None,
                  raw_decoders: dict[str, Callable[[bytes], object]] | None = None,
-                 watchdog: InputWatchdog | None = None):
+                 watchdog: InputWatchdog | None = None, also_read: Sequence = ()):
         self.topics = [t for _, t in topics]
         self.watchdog = watchdog
         self._decoders = dict(raw_decoders or {})
@@ -229,7 +270,7 @@ class SyncedInputs:
         self.worker = OrderedWorker(self._run, processing_queue_size, self._overrun,
                                     name=f"{node.get_name()}_frames")
         self._warn = getattr(node, "warn_input", None)
-        read_here = _ReadByInputReader()
+        read_here = ReadByInputReader()
         self.subscriptions = [
             node.create_subscription(
                 msg_type, topic, self._make_cb(i), qos, callback_group=read_here,
@@ -238,7 +279,7 @@ class SyncedInputs:
             for i, (msg_type, topic) in enumerate(topics)
         ]
         self.reader = InputReader(node, self.subscriptions, f"{node.get_name()}_inputs",
-                                  self._reader_error)
+                                  self._reader_error, optional=also_read)
         if diagnostics is not None:
             diagnostics.add_source(self._stats, self.unmatched_dropped, self.frames_lost)
 

@@ -118,6 +118,7 @@ class Recorder:
     def __init__(self, node, bag_path: Path, record: dict[str, str]):
         from lidar_quality_ros.bag_io import BagWriter, message_class
         from lidar_quality_ros.qos import output_qos
+        from lidar_quality_ros.synced_inputs import InputReader, ReadByInputReader
 
         self.lock = threading.Lock()
         self.received: dict[str, dict[int, int]] = {t: {} for t in record}
@@ -125,9 +126,14 @@ class Recorder:
         self.writer.__enter__()
         self.closed = False
         self._qos = output_qos(50)
+        group = ReadByInputReader()
         self.subs = {topic: node.create_subscription(
-            message_class(msgtype), topic, partial(self._on, topic, msgtype), self._qos, raw=True)
-            for topic, msgtype in record.items()}
+            message_class(msgtype), topic, partial(self._on, topic, msgtype), self._qos, raw=True,
+            callback_group=group) for topic, msgtype in record.items()}
+        # read on a thread of its own, not by the harness's executor (which rebuilds its
+        # wait set on every message: this process's CPU is taken from the nodes')
+        self.reader = InputReader(node, list(self.subs.values()), "demo_recorder",
+                                  lambda text: node.get_logger().error(f"recorder: {text}"))
 
     def _on(self, topic: str, msgtype: str, data: bytes, info: dict) -> None:
         stamp = stamp_of_bytes(data)
@@ -141,6 +147,7 @@ class Recorder:
             return len(self.received[topic])
 
     def close(self) -> None:
+        self.reader.stop()
         with self.lock:
             if not self.closed:
                 self.closed = True

@@ -182,3 +182,51 @@ def test_a_cloud_lost_in_transport_is_counted_and_said(ros):
         diag_values(s) for m in diag.messages for s in m.status][-1:]
     status = lost()
     assert "lost in transport" in status.message and "LQ_SHM_SEGMENT_MB" in status.message
+
+
+class _Clocked(Node):
+    """One input plus use_sim_time's /clock, both read by the input thread."""
+
+    def __init__(self, **kwargs):
+        super().__init__("clocked_node", **kwargs)
+        self.sets, self.threads = [], set()
+        clock_subs = [s for s in self.subscriptions if s.topic_name == "/clock"]
+        self.inputs = SyncedInputs(self, [(PointStamped, "a")], self._got,
+                                   on_arrival=self._arrived, also_read=clock_subs)
+
+    def _arrived(self, index, stamp_ns):
+        import threading
+        self.threads.add(threading.current_thread().name)
+
+    def _got(self, synced):
+        self.sets.append(synced.messages[0].header.stamp.sec)
+
+
+def test_inputs_and_the_clock_are_read_by_the_input_thread_not_the_executor(ros):
+    from rclpy.parameter import Parameter
+    from rosgraph_msgs.msg import Clock
+
+    node = ros.start(_Clocked, {"use_sim_time": True})
+    # the executor never takes these messages: their callback group refuses it
+    for sub in node.inputs.reader._subs:
+        assert not sub.callback_group.can_execute(sub)
+        assert all(not h.callback_group.can_execute(h) for h in sub.event_handlers)
+    topics = [s.topic_name for s in node.inputs.reader._subs]
+    assert topics == ["/clock", node.inputs.subscriptions[0].topic_name]
+    clock = ros.publisher(Clock, "/clock")
+    pa = ros.sensor_publisher(PointStamped, "a")
+    assert ros.wait_for_match(clock) and ros.wait_for_match(pa)
+    c = Clock()
+    c.clock.sec = 1234
+    clock.publish(c)
+    assert wait_until(lambda: node.get_clock().now().nanoseconds == 1234 * 10**9)
+    pa.publish(_h(1, 0))
+    assert wait_until(lambda: node.sets == [1])
+    assert node.threads == {"clocked_node_inputs"}
+    # use_sim_time off: rclpy destroys the /clock subscription under the reader, which
+    # leaves it out and goes on reading the inputs
+    node.set_parameters([Parameter("use_sim_time", value=False)])
+    assert wait_until(lambda: len(node.inputs.reader._subs) == 1)
+    pa.publish(_h(2, 0))
+    assert wait_until(lambda: node.sets == [1, 2])
+    assert node.get_clock().now().nanoseconds > 1234 * 10**9 * 1000  # the system clock again
