@@ -135,7 +135,16 @@ def run_node(node_factory, args=None, *, num_threads: int = 1) -> int:
             executor.drain(timeout_sec=2.0)
             executor.shutdown(timeout_sec=0)
         if node is not None:
+            name = node.get_name()
             node.destroy_node()
+            # a thread still in the middleware at exit can hang the process's finalization:
+            # say which, so that a hang after "shutting down" has a name
+            stuck = [t.name for t in threading.enumerate()
+                     if t is not threading.current_thread() and t.is_alive()
+                     and t.name.endswith(("_inputs", "_frames"))]
+            if stuck:
+                rclpy.logging.get_logger(name).error(
+                    f"threads still running after teardown: {', '.join(stuck)}")
         rclpy.try_shutdown()
         for sig, handler in previous.items():
             signal.signal(sig, handler)
