@@ -10,6 +10,10 @@ Every ``bench/bench_*.py`` module exposes ``figures()``, a generator of items:
 
 ``--only PREFIX`` runs the items whose name starts with it (an experiment also when the
 prefix starts with its name, keeping only the figures that match).
+
+The runner sets the node executables' allocator policy first
+(``lidar_quality_ros.threads.keep_freed_memory``), so that the in-process frame figures
+are what a node process spends on a frame.
 """
 from __future__ import annotations
 
@@ -71,6 +75,8 @@ def main(argv=None) -> int:
     ap.add_argument("--only", default="", help="run only figures whose name starts with this")
     ap.add_argument("--reps", type=int, default=100)
     args = ap.parse_args(argv)
+    from lidar_quality_ros.threads import keep_freed_memory
+    keep_freed_memory()  # as in the node processes (lidar_quality_ros.runner.run_node)
     results: dict[str, float] = {}
     for path in sorted(HERE.glob("bench_*.py")):
         for item in _load(path).figures():

@@ -135,6 +135,7 @@ class InputReader:
                 for entity in (sub, *sub.event_handlers):
                     entity.callback_group = group
                     group.add_entity(entity)
+        self._node = node
         self._context = node.context
         self._on_error = on_error
         self._stopping = False
@@ -145,19 +146,57 @@ class InputReader:
                                             self._context.handle)
         self._thread = threading.Thread(target=self._loop, name=name, daemon=True)
         self._thread.start()
+        # out of the middleware before the context goes, even for a node never closed
+        self._context.on_shutdown(self._stop_soon)
+
+    def _stop_soon(self) -> None:
+        self._stopping = True
+        try:
+            self._wake.trigger()
+        except InvalidHandle:
+            pass
 
     def _loop(self) -> None:
         name_os_thread("lq_inputs")
+        # Every handle is held (entered) for the reader's life, not per wake: entering
+        # some 20 handles per wake cost as much as the wait itself. A subscription is then
+        # only destroyed once released: an optional one that left the node is released by
+        # _prune, the rest when the thread ends.
+        held: dict = {}
+        try:
+            with ExitStack() as always:
+                for h in (self._context.handle, self._wake.handle):
+                    always.enter_context(h)
+                for sub in self._subs:
+                    held[sub] = stack = ExitStack()
+                    for entity in (sub.handle, *sub.event_handlers):
+                        stack.enter_context(entity)
+                self._read(held)
+        except (InvalidHandle, RuntimeError):
+            pass  # destroyed or shut down under us: nothing left to read
+        finally:
+            for stack in held.values():
+                stack.close()
+
+    def _read(self, held: dict) -> None:
+        checked = time.monotonic()
         while not self._stopping and self._context.ok():
+            if time.monotonic() - checked > 1.0:
+                checked = time.monotonic()
+                self._prune(held)
             try:
                 todo = self._wait_and_take()
-            except (InvalidHandle, RuntimeError):
-                return  # destroyed or shut down under us: nothing left to read
+            except InvalidHandle:
+                # an optional subscription destroyed since the last check (its events
+                # refuse to be waited on): leave it out; anything else ends the reader
+                if not self._prune(held):
+                    raise
+                continue
             except Exception as exc:  # noqa: BLE001 - said and counted; the inputs go on
                 self._on_error(f"input reader: {type(exc).__name__}: {exc}")
                 time.sleep(0.1)
                 continue
-            for callback, what, args in todo:  # handles released: a callback may take time
+            for callback, what, args in todo:
                 if self._stopping:
                     return
                 try:
@@ -165,66 +204,54 @@ class InputReader:
                 except Exception as exc:  # noqa: BLE001 - a bug costs this message, not the reader
                     self._on_error(f"{what} callback failed: {type(exc).__name__}: {exc}")
 
-    def _hold(self, held: ExitStack) -> list:
-        """Enter every subscription and event handle (so nothing is destroyed under a wait);
-        the subscriptions still alive."""
-        alive = []
-        for sub in self._subs:
-            try:
-                for entity in (sub.handle, *sub.event_handlers):
-                    held.enter_context(entity)
-            except InvalidHandle:
-                if sub in self._required:
-                    raise
-                continue  # an optional one destroyed (use_sim_time off): not read again
-            alive.append(sub)
-        if len(alive) < len(self._subs):
-            self._subs = alive
-        return alive
+    def _prune(self, held: dict) -> bool:
+        """Release the optional subscriptions the node destroyed (use_sim_time turned off
+        destroys /clock's; rclpy destroys them once we let go); True if there were any."""
+        if len(self._subs) == len(self._required):
+            return False
+        current = {id(s) for s in self._node.subscriptions}
+        gone = [s for s in self._subs if s not in self._required and id(s) not in current]
+        self._subs = [s for s in self._subs if s not in gone]
+        for sub in gone:
+            held.pop(sub).close()
+        return bool(gone)
 
     def _wait_and_take(self) -> list:
         ws = self._wait_set
-        with ExitStack() as held:
-            subs = self._hold(held)
-            for h in (self._wake.handle, self._context.handle):
-                held.enter_context(h)
-            ws.clear_entities()
-            for sub in subs:
-                ws.add_subscription(sub.handle)
-            ws.add_guard_condition(self._wake.handle)
-            events = [e for sub in subs for e in sub.event_handlers]
-            for e in events:
-                e.add_to_wait_set(ws)
-            # a timeout only so that a node destroyed without close() lets the thread go
-            ws.wait(500_000_000)
-            ready = ws.get_ready_entities("subscription")
-            todo = []
-            for e in events:
-                if e.is_ready(ws):
-                    data = e.take_data()
-                    if data:
-                        todo.append((e.callback, "QoS event", (data,)))
-            for sub in subs:
-                if sub.handle.pointer not in ready:
-                    continue
-                try:
-                    info = sub.handle.take_message(sub.msg_type, sub.raw)
-                except Exception as exc:  # noqa: BLE001 - one bad message, not the reader
-                    self._on_error(f"cannot take a message on {sub.topic_name}: "
-                                   f"{type(exc).__name__}: {exc}")
-                    continue
-                if info is not None:  # (message, message info), as the executor hands them
-                    args = info if sub._callback_type is WITH_INFO else info[:1]
-                    todo.append((sub.callback, f"input {sub.topic_name}", args))
-            return todo
+        subs = self._subs
+        ws.clear_entities()
+        for sub in subs:
+            ws.add_subscription(sub.handle)
+        ws.add_guard_condition(self._wake.handle)
+        events = [e for sub in subs for e in sub.event_handlers]
+        for e in events:
+            e.add_to_wait_set(ws)
+        # a timeout only so that a node destroyed without close() lets the thread go
+        ws.wait(500_000_000)
+        ready = ws.get_ready_entities("subscription")
+        todo = []
+        for e in events:
+            if e.is_ready(ws):
+                data = e.take_data()
+                if data:
+                    todo.append((e.callback, "QoS event", (data,)))
+        for sub in subs:
+            if sub.handle.pointer not in ready:
+                continue
+            try:
+                info = sub.handle.take_message(sub.msg_type, sub.raw)
+            except Exception as exc:  # noqa: BLE001 - one bad message, not the reader
+                self._on_error(f"cannot take a message on {sub.topic_name}: "
+                               f"{type(exc).__name__}: {exc}")
+                continue
+            if info is not None:  # (message, message info), as the executor hands them
+                args = info if sub._callback_type is WITH_INFO else info[:1]
+                todo.append((sub.callback, f"input {sub.topic_name}", args))
+        return todo
 
     def stop(self, timeout: float = 5.0) -> None:
         """Stop reading (the message being handled finishes) and end the thread."""
-        self._stopping = True
-        try:
-            self._wake.trigger()
-        except InvalidHandle:
-            pass
+        self._stop_soon()
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout)
         self._wake.destroy()
