@@ -11,7 +11,12 @@ Fast DDS profile, outputs matched by stamp in the publishing process), run once 
    ``e2e.<node>.latency_ms_p50`` / ``_p99`` (from the start of the publication of the
    node's input frame to the reception of its main output: LMD ``output/detections``,
    LMS ``output/segments``, MIMO ``output/detections``; goals p99 <= 30 / 80 / 10 ms) and
-   ``e2e.<node>.dropped`` (frames published without output; goal 0 for all three at once).
+   ``e2e.<node>.dropped`` (frames published without output; goal 0 for all three at once),
+   ``e2e.<node>.cpu_ms_per_frame`` (the node process's CPU time per frame, all threads)
+   and the same by thread, ``e2e.<node>.cpu_ms_per_frame.<kind>``: ``inputs`` (taking
+   and decoding the input messages), ``frames`` (the frame's work: features, models,
+   outputs, publishing), ``executor`` (rclpy: timers, /diagnostics, parameter services),
+   ``dds`` (Fast DDS's own threads), ``other``.
 2. Each node alone: the rate stepped through ``RATES`` for ``WINDOW`` = 10 s each, until a
    step drops a frame (or the publisher cannot keep the rate: then the figure is a lower
    bound, the report says so); ``e2e.<node>.max_rate_hz`` = the highest rate with no
@@ -74,6 +79,8 @@ def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=R
         figures[f"e2e.{n}.latency_ms_p99"] = e["latency_ms_p99"]
         figures[f"e2e.{n}.dropped"] = e["dropped"]
         figures[f"e2e.{n}.cpu_ms_per_frame"] = e["cpu_ms_per_frame"]
+        for kind, ms in e["cpu_ms_per_frame_by_thread"].items():
+            figures[f"e2e.{n}.cpu_ms_per_frame.{kind.removeprefix('lq_')}"] = ms
         _say(f"{n}: {e['received']}/{e['published']} received, latency p50 "
              f"{e['latency_ms_p50']} ms p99 {e['latency_ms_p99']} ms (node processing p50 "
              f"{e['processing_ms_p50']} p99 {e['processing_ms_p99']} ms), CPU {e['cpu_pct']} % "
@@ -92,7 +99,8 @@ def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=R
                      f"{r['achieved_rate_hz']} Hz)")
                 keep = ("published", "received", "dropped", "latency_ms_p50",
                         "latency_ms_p99", "processing_ms_p50", "processing_ms_p99",
-                        "diag_dropped_reasons", "cpu_pct", "cpu_ms_per_frame")
+                        "diag_dropped_reasons", "cpu_pct", "cpu_ms_per_frame",
+                        "cpu_ms_per_frame_by_thread")
                 return ok, why, {"achieved_rate_hz": r["achieved_rate_hz"],
                                  "late_ticks": r["late_ticks"], **{k: e[k] for k in keep}}
             best, steps = max_sustained_rate(trial, rates)

@@ -74,6 +74,40 @@ def cpu_seconds(pid: int) -> float | None:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
+def thread_cpu_seconds(pid: int) -> dict[str, float]:
+    """User + system CPU time [s] of a process's threads, summed by kind: the node
+    executables name theirs (``lq_inputs``: input thread, ``lq_frames``: frame worker,
+    ``lq_executor``: rclpy executor), Fast DDS's start with ``dds.``; the rest is
+    ``other``. Threads that ended are not counted."""
+    out: dict[str, float] = {}
+    tick = os.sysconf("SC_CLK_TCK")
+    try:
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+    except (FileNotFoundError, ProcessLookupError):
+        return out
+    for task in tasks:
+        try:
+            stat = (task / "stat").read_text()
+        except (FileNotFoundError, ProcessLookupError):
+            continue
+        comm = stat[stat.index("(") + 1:stat.rindex(")")]
+        kind = (comm if comm.startswith("lq_") else "dds" if comm.startswith("dds.")
+                else "other")
+        fields = stat.rsplit(")", 1)[1].split()
+        out[kind] = out.get(kind, 0.0) + (int(fields[11]) + int(fields[12])) / tick
+    return out
+
+
+def _per_frame(snapshots: list, rate: float) -> dict[str, float]:
+    """``{thread kind: CPU ms per frame}`` between the first and the last of
+    ``[(t, thread_cpu_seconds), ...]`` at ``rate`` frames per second."""
+    if len(snapshots) < 2 or rate <= 0 or snapshots[-1][0] <= snapshots[0][0]:
+        return {}
+    (t_a, a), (t_b, b) = snapshots[0], snapshots[-1]
+    return {k: round((v - a.get(k, 0.0)) / (t_b - t_a) / rate * 1e3, 2)
+            for k, v in sorted(b.items()) if v - a.get(k, 0.0) > 0}
+
+
 def memory_growth(t: np.ndarray, kb: np.ndarray, warmup_s: float, window_s: float) -> dict:
     """RSS at the end of warm-up (median over ``window_s`` after ``warmup_s``), at the end
     (median over the last ``window_s``), growth between them in %, the growth over the
@@ -405,6 +439,8 @@ class LoadTest:
         pub_ms: dict[str, list[float]] = {n: [] for n in names}
         stop = threading.Event()
 
+        by_thread: dict[str, list] = {n: [] for n in names}  # (t, first), (t, latest)
+
         def sample(t0: float) -> None:
             while True:
                 now = time.monotonic() - t0
@@ -412,6 +448,7 @@ class LoadTest:
                     kb = rss_kb(pid)
                     if kb is not None:
                         samples[n].append((now, kb, cpu_seconds(pid)))
+                        by_thread[n][1:] = [(now, thread_cpu_seconds(pid))]
                 if stop.wait(1.0):
                     return
 
@@ -506,6 +543,8 @@ class LoadTest:
                 "cpu_ms_per_frame": (round(float((arr[-1, 2] - arr[0, 2]) / span / rate * 1e3),
                                            2) if span > 0 and rate > 0 else None),
                 "alive": node.proc.poll() is None,
+                # the same by thread (lq_inputs, lq_frames, lq_executor, dds, other)
+                "cpu_ms_per_frame_by_thread": _per_frame(by_thread[n], rate),
             }
             if keep_series:
                 step = max(1, len(samples[n]) // 120)
