@@ -43,18 +43,21 @@ def test_thread_cpu_by_kind():
 
     from lidar_quality_ros.threads import name_os_thread
 
+    burnt, done = threading.Event(), threading.Event()
+
     def burn():
         name_os_thread("lq_testburn")
-        t0 = load_test.time.process_time()
-        x = 0
-        while load_test.time.process_time() - t0 < 0.1:
-            x += 1
+        t0 = load_test.time.thread_time()
+        while load_test.time.thread_time() - t0 < 0.2:
+            pass
+        burnt.set()
+        done.wait(10)  # alive (and listed) while we look
 
     t = threading.Thread(target=burn)
     t.start()
-    seen = {}
-    while t.is_alive():  # an ended thread is no longer counted: look while it runs
-        seen = load_test.thread_cpu_seconds(os.getpid())
+    burnt.wait(10)
+    seen = load_test.thread_cpu_seconds(os.getpid())
+    done.set()
     t.join()
     assert set(seen) <= {"lq_testburn", "other", "dds"} and seen.get("lq_testburn", 0) > 0
     assert load_test.thread_cpu_seconds(2**22 + 12345) == {}
