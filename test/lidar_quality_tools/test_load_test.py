@@ -59,7 +59,9 @@ def test_thread_cpu_by_kind():
     seen = load_test.thread_cpu_seconds(os.getpid())
     done.set()
     t.join()
-    assert set(seen) <= {"lq_testburn", "other", "dds"} and seen.get("lq_testburn", 0) > 0
+    # (other tests' in-process nodes may have left lq_ threads of their own here)
+    assert seen.get("lq_testburn", 0) > 0
+    assert all(k in ("other", "dds") or k.startswith("lq_") for k in seen)
     assert load_test.thread_cpu_seconds(2**22 + 12345) == {}
     per = load_test._per_frame([(0.0, {"lq_frames": 1.0}), (10.0, {"lq_frames": 1.5,
                                                                    "dds": 0.1})], 10.0)
