@@ -328,7 +328,7 @@ def valid_points(xyz: np.ndarray) -> np.ndarray:
     if xyz.ndim != 2 or xyz.shape[1] != 3:
         raise ValueError(f"valid_points expects (N, 3) coordinates, got shape {xyz.shape}")
     mask = finite_mask(xyz)
-    mask &= (xyz[:, 0] != 0) | (xyz[:, 1] != 0) | (xyz[:, 2] != 0)
+    mask &= ~padding_mask(xyz)
     return mask
 
 

@@ -128,13 +128,12 @@ class InputReader:
         self._required = list(subscriptions)
         # optional ones first: a transform or clock that came with a frame is in before it
         self._subs = [s for s in optional if s not in self._required] + self._required
+        moved = ReadByInputReader()
         for sub in self._subs:  # the executor never waits on them, nor on their events
-            group = sub.callback_group
-            if not isinstance(group, ReadByInputReader):
-                group = ReadByInputReader()
+            if not isinstance(sub.callback_group, ReadByInputReader):
                 for entity in (sub, *sub.event_handlers):
-                    entity.callback_group = group
-                    group.add_entity(entity)
+                    entity.callback_group = moved
+                    moved.add_entity(entity)
         self._node = node
         self._context = node.context
         self._on_error = on_error
@@ -193,6 +192,8 @@ class InputReader:
                     raise
                 continue
             except Exception as exc:  # noqa: BLE001 - said and counted; the inputs go on
+                if self._stopping or not self._context.ok():
+                    return  # shut down under the wait: not a lost message
                 self._on_error(f"input reader: {type(exc).__name__}: {exc}")
                 time.sleep(0.1)
                 continue

@@ -133,7 +133,8 @@ class Recorder:
         # read on a thread of its own, not by the harness's executor (which rebuilds its
         # wait set on every message: this process's CPU is taken from the nodes')
         self.reader = InputReader(node, list(self.subs.values()), "demo_recorder",
-                                  lambda text: node.get_logger().error(f"recorder: {text}"))
+                                  lambda text: node.get_logger().error(
+                                      f"recorder: {text}", throttle_duration_sec=5.0))
 
     def _on(self, topic: str, msgtype: str, data: bytes, info: dict) -> None:
         stamp = stamp_of_bytes(data)

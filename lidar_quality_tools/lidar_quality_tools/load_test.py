@@ -65,13 +65,19 @@ def rss_kb(pid: int) -> int | None:
     return None
 
 
+def _stat_cpu(stat: str) -> tuple[str, float]:
+    """``(comm, user + system CPU time [s])`` of a ``/proc/.../stat`` line."""
+    fields = stat.rsplit(")", 1)[1].split()
+    return (stat[stat.index("(") + 1:stat.rindex(")")],
+            (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"))
+
+
 def cpu_seconds(pid: int) -> float | None:
     """User + system CPU time of a process [s]."""
     try:
-        fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+        return _stat_cpu(Path(f"/proc/{pid}/stat").read_text())[1]
     except (FileNotFoundError, ProcessLookupError):
         return None
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 def thread_cpu_seconds(pid: int) -> dict[str, float]:
@@ -80,21 +86,18 @@ def thread_cpu_seconds(pid: int) -> dict[str, float]:
     ``lq_executor``: rclpy executor), Fast DDS's start with ``dds.``; the rest is
     ``other``. Threads that ended are not counted."""
     out: dict[str, float] = {}
-    tick = os.sysconf("SC_CLK_TCK")
     try:
         tasks = list(Path(f"/proc/{pid}/task").iterdir())
     except (FileNotFoundError, ProcessLookupError):
         return out
     for task in tasks:
         try:
-            stat = (task / "stat").read_text()
+            comm, seconds = _stat_cpu((task / "stat").read_text())
         except (FileNotFoundError, ProcessLookupError):
             continue
-        comm = stat[stat.index("(") + 1:stat.rindex(")")]
         kind = (comm if comm.startswith("lq_") else "dds" if comm.startswith("dds.")
                 else "other")
-        fields = stat.rsplit(")", 1)[1].split()
-        out[kind] = out.get(kind, 0.0) + (int(fields[11]) + int(fields[12])) / tick
+        out[kind] = out.get(kind, 0.0) + seconds
     return out
 
 
