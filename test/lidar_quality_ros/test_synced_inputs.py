@@ -230,3 +230,37 @@ def test_inputs_and_the_clock_are_read_by_the_input_thread_not_the_executor(ros)
     pa.publish(_h(2, 0))
     assert wait_until(lambda: node.sets == [1, 2])
     assert node.get_clock().now().nanoseconds > 1234 * 10**9 * 1000  # the system clock again
+
+
+class _BadExtra(Node):
+    """One input plus an extra subscription read by the input thread whose callback fails
+    (a bug in a /tf or /clock handler): counted, said once per cause, inputs go on."""
+
+    def __init__(self, **kwargs):
+        super().__init__("bad_extra_node", **kwargs)
+        self.sets = []
+        self.diag = NodeDiagnostics(self, period_s=0)
+        extra = self.create_subscription(PointStamped, "b", self._boom, 10)
+        self.inputs = SyncedInputs(self, [(PointStamped, "a")], self.sets.append,
+                                   diagnostics=self.diag, also_read=[extra])
+
+    def _boom(self, msg):
+        raise RuntimeError("handler bug")
+
+    def warn_input(self, key, message, level=None, *, transient=False):
+        self.diag.warn(key, message, transient=transient)
+
+
+def test_a_failing_callback_on_the_input_thread_is_counted_and_said(ros):
+    from diagnostic_msgs.msg import DiagnosticStatus
+
+    node = ros.start(_BadExtra)
+    pa, pb = ros.sensor_publisher(PointStamped, "a"), ros.publisher(PointStamped, "b")
+    assert ros.wait_for_match(pa) and ros.wait_for_match(pb)
+    pb.publish(_h(1, 0))
+    assert wait_until(lambda: node.diag.counts().get("dropped.undecodable_input", 0) == 1)
+    status = node.diag.status()
+    assert status.level == DiagnosticStatus.WARN
+    assert "callback failed: RuntimeError: handler bug" in status.message
+    pa.publish(_h(2, 0))  # the input thread reads on
+    assert wait_until(lambda: [s.messages[0].header.stamp.sec for s in node.sets] == [2])
