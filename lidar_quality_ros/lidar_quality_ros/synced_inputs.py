@@ -14,6 +14,7 @@ import threading
 import time
 import traceback
 from collections import deque
+from functools import partial
 from contextlib import ExitStack
 from typing import Callable, Sequence
 
@@ -27,18 +28,24 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.subscription import Subscription
 
 from .qos import SENSOR_QOS
-from .threads import name_os_thread
+from .threads import name_os_thread, touch_memory
+
+#: longest a node's start waits for its threads' warm-up (it goes on without it after)
+_WARMUP_WAIT_S = 30.0
 
 
 class OrderedWorker:
     """Runs ``fn(item)`` on a thread of its own, in submission order, keeping at most
-    ``max_pending`` items waiting; ``on_overrun(n)`` hears of the items it discarded."""
+    ``max_pending`` items waiting; ``on_overrun(n)`` hears of the items it discarded.
+    ``warmup()``, if given, runs first on the thread; ``ready`` is set after it."""
 
     def __init__(self, fn: Callable, max_pending: int, on_overrun: Callable[[int], None],
-                 name: str = "lq_frame_worker"):
+                 name: str = "lq_frame_worker", warmup: Callable[[], None] | None = None):
         if max_pending < 1:
             raise ValueError(f"max_pending must be >= 1, got {max_pending}")
         self._fn, self._max, self._on_overrun = fn, max_pending, on_overrun
+        self._warmup = warmup
+        self.ready = threading.Event()
         self._pending: deque = deque()
         self._cond = threading.Condition()
         self._stopping = False
@@ -65,6 +72,7 @@ class OrderedWorker:
 
     def _loop(self) -> None:
         name_os_thread("lq_frames")
+        _warm_up(self._warmup, self.ready)
         while True:
             with self._cond:
                 self._cond.wait_for(lambda: self._pending or self._stopping)
@@ -86,6 +94,16 @@ class OrderedWorker:
             self._cond.notify_all()
         if threading.current_thread() is not self._thread:
             self._thread.join(timeout)
+
+
+def _warm_up(warmup: Callable[[], None] | None, ready: threading.Event) -> None:
+    try:
+        if warmup is not None:
+            warmup()
+    except MemoryError:
+        pass  # a warm-up the machine cannot afford: the frames pay their own first touch
+    finally:
+        ready.set()
 
 
 WITH_INFO = Subscription.CallbackType.WithMessageInfo
@@ -121,10 +139,11 @@ class InputReader:
 
     ``optional`` subscriptions (use_sim_time's /clock, /tf) are read here too, moved out
     of the executor with their events; one of them destroyed under us (use_sim_time
-    turned off) is left out from then on, while a destroyed input ends the reader."""
+    turned off) is left out from then on, while a destroyed input ends the reader.
+    ``warmup()``, if given, runs first on the thread; ``ready`` is set after it."""
 
     def __init__(self, node, subscriptions: Sequence, name: str, on_error: Callable[[str], None],
-                 optional: Sequence = ()):
+                 optional: Sequence = (), warmup: Callable[[], None] | None = None):
         self._required = list(subscriptions)
         # optional ones first: a transform or clock that came with a frame is in before it
         self._subs = [s for s in optional if s not in self._required] + self._required
@@ -139,6 +158,8 @@ class InputReader:
         self._on_error = on_error
         self._stopping = False
         self._wake = GuardCondition(None, None, context=self._context)
+        self._warmup = warmup
+        self.ready = threading.Event()
         with self._context.handle:
             self._wait_set = _rclpy.WaitSet(len(self._subs), 1, 0, 0, 0,
                                             sum(len(s.event_handlers) for s in self._subs),
@@ -157,6 +178,7 @@ class InputReader:
 
     def _loop(self) -> None:
         name_os_thread("lq_inputs")
+        _warm_up(self._warmup, self.ready)
         # Every handle is held (entered) for the reader's life, not per wake: entering
         # some 20 handles per wake cost as much as the wait itself. A subscription is then
         # only destroyed once released: an optional one that left the node is released by
@@ -276,7 +298,11 @@ class SyncedInputs:
 
     ``also_read``: other subscriptions of the node that the input thread reads too (the
     /clock of use_sim_time, /tf): frequent small messages that would otherwise wake the
-    executor (see :class:`InputReader`)."""
+    executor (see :class:`InputReader`).
+
+    ``warmup_memory_mb``: memory the frame thread (3/4) and the input thread (1/4) touch
+    before the first subscription exists and before this returns (``threads.touch_memory``);
+    ``warmup_s`` is what it took."""
 
     def __init__(self, node, topics: Sequence[tuple[type, str]],
                  callback: Callable[[SyncedSet], None], *, mode: str = "exact",
@@ -284,7 +310,8 @@ class SyncedInputs:
                  qos=SENSOR_QOS, diagnostics=None,
                  on_arrival: Callable[[int, int], None] | None = None,
                  raw_decoders: dict[str, Callable[[bytes], object]] | None = None,
-                 watchdog: InputWatchdog | None = None, also_read: Sequence = ()):
+                 watchdog: InputWatchdog | None = None, also_read: Sequence = (),
+                 warmup_memory_mb: float = 0.0):
         self.topics = [t for _, t in topics]
         self.watchdog = watchdog
         self._decoders = dict(raw_decoders or {})
@@ -295,8 +322,12 @@ class SyncedInputs:
         self._callback = callback
         self._diag = diagnostics
         self._logger = node.get_logger()
-        self.worker = OrderedWorker(self._run, processing_queue_size, self._overrun,
-                                    name=f"{node.get_name()}_frames")
+        t_warm = time.monotonic()
+        frame_mb, input_mb = 0.75 * warmup_memory_mb, 0.25 * warmup_memory_mb
+        self.worker = OrderedWorker(
+            self._run, processing_queue_size, self._overrun, name=f"{node.get_name()}_frames",
+            warmup=partial(touch_memory, frame_mb) if frame_mb > 0 else None)
+        self.worker.ready.wait(_WARMUP_WAIT_S)
         self._warn = getattr(node, "warn_input", None)
         read_here = ReadByInputReader()
         self.subscriptions = [
@@ -307,7 +338,10 @@ class SyncedInputs:
             for i, (msg_type, topic) in enumerate(topics)
         ]
         self.reader = InputReader(node, self.subscriptions, f"{node.get_name()}_inputs",
-                                  self._reader_error, optional=also_read)
+                                  self._reader_error, optional=also_read,
+                                  warmup=partial(touch_memory, input_mb) if input_mb > 0 else None)
+        self.reader.ready.wait(_WARMUP_WAIT_S)
+        self.warmup_s = time.monotonic() - t_warm
         if diagnostics is not None:
             diagnostics.add_source(self._stats, self.unmatched_dropped, self.frames_lost)
 

@@ -45,3 +45,35 @@ def keep_freed_memory() -> bool:
     ok = _libc.mallopt(_M_MMAP_THRESHOLD, MMAP_THRESHOLD_BYTES)
     ok &= _libc.mallopt(_M_TRIM_THRESHOLD, KEEP_FREED_BYTES)
     return bool(ok)
+
+
+#: size of the blocks touch_memory allocates: below MMAP_THRESHOLD_BYTES, so that they come
+#: from (and go back to) the thread's heap, as a frame's arrays do
+_TOUCH_BLOCK_BYTES = 4 << 20
+
+
+def touch_memory(megabytes: float) -> float:
+    """Allocate ``megabytes`` on the calling thread, write every page, free it; returns
+    the seconds it took.
+
+    Why: on a virtual machine the first write to a page the guest has not used lately
+    costs far more than a write to a page it has (measured on the 2-core VM: 256 MB in
+    0.85 s at node start-up, against 15-20 ms for memory freed moments before). A node's
+    first frames allocate their working set (about 100 MB in lms_node) and paid that: the
+    first LMS frame of a fresh clone's demo took 260-320 ms instead of 60-80 and the
+    frames behind it overflowed the queue. Done at start-up on the frame and input
+    threads, with ``keep_freed_memory``, the pages stay with the thread's heap and the
+    frames reuse them."""
+    import time
+
+    import numpy as np
+
+    t0 = time.perf_counter()
+    n = int(megabytes * (1 << 20)) // _TOUCH_BLOCK_BYTES
+    blocks = []
+    for _ in range(n):
+        b = np.empty(_TOUCH_BLOCK_BYTES, dtype=np.uint8)
+        b.fill(1)  # np.zeros may map the kernel's zero page instead of writing
+        blocks.append(b)
+    del blocks
+    return time.perf_counter() - t0

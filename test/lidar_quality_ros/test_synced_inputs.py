@@ -264,3 +264,38 @@ def test_a_failing_callback_on_the_input_thread_is_counted_and_said(ros):
     assert "callback failed: RuntimeError: handler bug" in status.message
     pa.publish(_h(2, 0))  # the input thread reads on
     assert wait_until(lambda: [s.messages[0].header.stamp.sec for s in node.sets] == [2])
+
+
+def test_worker_warms_up_on_its_own_thread_before_the_first_item():
+    import threading
+
+    from lidar_quality_ros.synced_inputs import OrderedWorker
+    events = []
+    worker = OrderedWorker(lambda item: events.append(("item", item)), max_pending=2,
+                           on_overrun=print, name="warm_worker",
+                           warmup=lambda: events.append(("warmup",
+                                                         threading.current_thread().name)))
+    assert worker.ready.wait(5.0)
+    worker.submit(1)
+    assert wait_until(lambda: len(events) == 2)
+    assert events == [("warmup", "warm_worker"), ("item", 1)]
+    worker.stop()
+
+
+class _Warm(Node):
+    def __init__(self, **kwargs):
+        super().__init__("warm_node", **kwargs)
+        self.sets = []
+        self.inputs = SyncedInputs(self, [(PointStamped, "a")], self.sets.append,
+                                   warmup_memory_mb=16)
+
+
+def test_inputs_are_ready_only_after_both_threads_warmed_up(ros):
+    node = ros.start(_Warm)
+    # set before the constructor returned (the subscriptions exist only then)
+    assert node.inputs.worker.ready.is_set() and node.inputs.reader.ready.is_set()
+    assert node.inputs.warmup_s > 0
+    pub = ros.sensor_publisher(PointStamped, "a")
+    assert ros.wait_for_match(pub)
+    pub.publish(_h(1, 0))
+    assert wait_until(lambda: len(node.sets) == 1)

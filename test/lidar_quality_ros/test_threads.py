@@ -35,3 +35,42 @@ def test_freed_memory_is_kept_unless_the_user_set_glibc_s_own_variables():
                          text=True, check=True).stdout.strip()
     assert out == "False"
 
+
+
+# On one thread: 48 MB of frame-sized arrays, with or without touch_memory(64) before; the
+# memory [MB] the arrays added to the process (RSS) and what the warm-up kept.
+_FAULTS = """
+import sys, threading
+import numpy as np
+from lidar_quality_ros.threads import keep_freed_memory, touch_memory
+keep_freed_memory()
+def rss():
+    return int(open("/proc/self/status").read().split("VmRSS:")[1].split()[0]) >> 10
+def run():
+    r0 = rss()
+    if sys.argv[1] == "warm":
+        assert touch_memory(64) > 0
+    r1 = rss()
+    arrays = [np.ones(2 << 20) for _ in range(3)]  # 3 x 16 MB, written
+    print(rss() - r1, r1 - r0)
+t = threading.Thread(target=run)
+t.start()
+t.join()
+"""
+
+
+def test_touched_memory_stays_with_the_thread_for_its_next_arrays():
+    import os
+
+    env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
+
+    def probe(mode):
+        out = subprocess.run([sys.executable, "-c", _FAULTS, mode], env=env, capture_output=True,
+                             text=True, check=True).stdout.split()
+        return int(out[0]), int(out[1])
+
+    cold_added, _ = probe("cold")
+    warm_added, kept_mb = probe("warm")
+    assert cold_added >= 40  # fresh pages, each faulted in by the arrays
+    assert warm_added <= 8  # the pages the warm-up wrote, reused
+    assert kept_mb >= 48  # freed, yet kept by the thread's heap
