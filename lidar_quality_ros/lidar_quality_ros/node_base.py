@@ -109,16 +109,11 @@ class SyncParameters:
         "at start-up, before subscribing, so that the first frames reuse it instead of "
         "faulting fresh pages in (slow on virtual machines: up to 3 ms per MB). About one "
         "frame's peak memory; 0: none.", min_value=0.0)
-    processing_nice: int = param(
-        0, "Added to the frame thread's nice value (Linux): a node with a loose latency "
-        "budget yields the CPU to the nodes with tight ones when they contend for it; "
-        "alone it runs as fast as before.", min_value=0, max_value=19)
 
     def synced_inputs_kwargs(self) -> dict:
         return dict(mode=self.sync_mode, slop_s=self.sync_slop, queue_size=self.sync_queue_size,
                     processing_queue_size=self.processing_queue_size,
-                    warmup_memory_mb=self.warmup_memory_mb,
-                    processing_nice=self.processing_nice)
+                    warmup_memory_mb=self.warmup_memory_mb)
 
 
 #: every parameter the base class and the synchroniser declare, for tables and checks

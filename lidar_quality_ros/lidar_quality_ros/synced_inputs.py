@@ -28,7 +28,7 @@ from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.subscription import Subscription
 
 from .qos import SENSOR_QOS
-from .threads import lower_thread_priority, name_os_thread, touch_memory
+from .threads import name_os_thread, touch_memory
 
 #: longest a node's start waits for its threads' warm-up (it goes on without it after)
 _WARMUP_WAIT_S = 30.0
@@ -37,16 +37,14 @@ _WARMUP_WAIT_S = 30.0
 class OrderedWorker:
     """Runs ``fn(item)`` on a thread of its own, in submission order, keeping at most
     ``max_pending`` items waiting; ``on_overrun(n)`` hears of the items it discarded.
-    ``warmup()``, if given, runs first on the thread; ``ready`` is set after it. ``nice``:
-    added to the thread's nice value (``threads.lower_thread_priority``)."""
+    ``warmup()``, if given, runs first on the thread; ``ready`` is set after it."""
 
     def __init__(self, fn: Callable, max_pending: int, on_overrun: Callable[[int], None],
-                 name: str = "lq_frame_worker", warmup: Callable[[], None] | None = None,
-                 nice: int = 0):
+                 name: str = "lq_frame_worker", warmup: Callable[[], None] | None = None):
         if max_pending < 1:
             raise ValueError(f"max_pending must be >= 1, got {max_pending}")
         self._fn, self._max, self._on_overrun = fn, max_pending, on_overrun
-        self._warmup, self._nice = warmup, nice
+        self._warmup = warmup
         self.ready = threading.Event()
         self._pending: deque = deque()
         self._cond = threading.Condition()
@@ -74,7 +72,6 @@ class OrderedWorker:
 
     def _loop(self) -> None:
         name_os_thread("lq_frames")
-        lower_thread_priority(self._nice)
         _warm_up(self._warmup, self.ready)
         while True:
             with self._cond:
@@ -305,7 +302,7 @@ class SyncedInputs:
 
     ``warmup_memory_mb``: memory the frame thread (3/4) and the input thread (1/4) touch
     before the first subscription exists and before this returns (``threads.touch_memory``);
-    ``warmup_s`` is what it took. ``processing_nice``: the frame thread's nice increment."""
+    ``warmup_s`` is what it took."""
 
     def __init__(self, node, topics: Sequence[tuple[type, str]],
                  callback: Callable[[SyncedSet], None], *, mode: str = "exact",
@@ -314,7 +311,7 @@ class SyncedInputs:
                  on_arrival: Callable[[int, int], None] | None = None,
                  raw_decoders: dict[str, Callable[[bytes], object]] | None = None,
                  watchdog: InputWatchdog | None = None, also_read: Sequence = (),
-                 warmup_memory_mb: float = 0.0, processing_nice: int = 0):
+                 warmup_memory_mb: float = 0.0):
         self.topics = [t for _, t in topics]
         self.watchdog = watchdog
         self._decoders = dict(raw_decoders or {})
@@ -329,8 +326,7 @@ class SyncedInputs:
         frame_mb, input_mb = 0.75 * warmup_memory_mb, 0.25 * warmup_memory_mb
         self.worker = OrderedWorker(
             self._run, processing_queue_size, self._overrun, name=f"{node.get_name()}_frames",
-            warmup=partial(touch_memory, frame_mb) if frame_mb > 0 else None,
-            nice=processing_nice)
+            warmup=partial(touch_memory, frame_mb) if frame_mb > 0 else None)
         self.worker.ready.wait(_WARMUP_WAIT_S)
         self._warn = getattr(node, "warn_input", None)
         read_here = ReadByInputReader()

@@ -77,20 +77,3 @@ def touch_memory(megabytes: float) -> float:
         blocks.append(b)
     del blocks
     return time.perf_counter() - t0
-
-
-def lower_thread_priority(increment: int) -> bool:
-    """Raise the calling thread's nice value by ``increment`` (Linux: the nice value is a
-    per-thread attribute; raising it needs no privilege). True if it was changed."""
-    import os
-    import threading
-
-    if increment <= 0 or not hasattr(os, "setpriority"):
-        return False
-    tid = threading.get_native_id()
-    try:
-        os.setpriority(os.PRIO_PROCESS, tid, min(19, os.getpriority(os.PRIO_PROCESS, tid)
-                                                  + increment))
-    except OSError:
-        return False
-    return True

@@ -299,19 +299,3 @@ def test_inputs_are_ready_only_after_both_threads_warmed_up(ros):
     assert ros.wait_for_match(pub)
     pub.publish(_h(1, 0))
     assert wait_until(lambda: len(node.sets) == 1)
-
-
-def test_worker_runs_frames_at_the_nice_value_it_was_given():
-    import os
-    import threading
-
-    from lidar_quality_ros.synced_inputs import OrderedWorker
-    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-    seen = []
-    worker = OrderedWorker(lambda item: seen.append(
-        os.getpriority(os.PRIO_PROCESS, threading.get_native_id())), max_pending=2,
-        on_overrun=print, nice=4)
-    worker.submit(1)
-    assert wait_until(lambda: seen)
-    assert seen == [min(19, base + 4)]
-    worker.stop()

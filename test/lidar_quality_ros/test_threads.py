@@ -74,22 +74,3 @@ def test_touched_memory_stays_with_the_thread_for_its_next_arrays():
     assert cold_added >= 40  # fresh pages, each faulted in by the arrays
     assert warm_added <= 8  # the pages the warm-up wrote, reused
     assert kept_mb >= 48  # freed, yet kept by the thread's heap
-
-
-def test_a_thread_lowers_its_own_priority_only():
-    import os
-
-    from lidar_quality_ros.threads import lower_thread_priority
-    base = os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
-    seen = []
-
-    def run():
-        seen.append(lower_thread_priority(3))
-        seen.append(os.getpriority(os.PRIO_PROCESS, threading.get_native_id()))
-
-    t = threading.Thread(target=run)
-    t.start()
-    t.join()
-    assert seen == [True, min(19, base + 3)]
-    assert os.getpriority(os.PRIO_PROCESS, threading.get_native_id()) == base
-    assert lower_thread_priority(0) is False
