@@ -165,13 +165,10 @@ def _class_codes(buf: bytes, raw_bytes: np.ndarray, at: np.ndarray, lengths: np.
     return codes, names
 
 
-def decode_detection_array(data) -> DecodedDetections:
-    """Decode serialized Detection3DArray bytes (``CdrError`` when they are not one)."""
-    # a Detection3D takes > 100 bytes
-    buf, words, h, n, p = open_array(data, "Detection3DArray", "detections", 100)
+def _layout_loop(buf: bytes, words, p: int, n: int):
+    """Where each part of the ``n`` detections from offset ``p`` sits: (spans, bbox_at,
+    id_at, ids as bytes, hyp_off, cls_at), walking the layout in Python."""
     end = len(buf)
-    e = "<"
-    f = _FMTS[e]
     try:
         spans, bbox_at, id_at, ids = [], [], [], []
         hyp_off, cls_at = [0], []
@@ -205,6 +202,87 @@ def decode_detection_array(data) -> DecodedDetections:
         raise CdrError(f"truncated Detection3DArray ({end} bytes): {exc}") from None
     if p > end:
         raise CdrError(f"truncated Detection3DArray: {end} bytes, need {p}")
+    return (np.asarray(spans, dtype=np.int64).reshape(n, 2), bbox_at, id_at, ids,
+            hyp_off, cls_at)
+
+
+#: arrays shorter than this are walked in Python: the vectorized walk costs ~0.05 ms more
+#: at any size and saves ~1 us per detection (measured: equal at ~90 detections, 0.27
+#: against 0.52 ms at 512)
+_VECTORIZED_MIN = 96
+
+
+def _layout_vectorized(buf: bytes, p: int, n: int):
+    """``_layout_loop``'s result (offsets as int64 arrays) without a Python loop over the
+    detections, or None where it cannot tell (then the loop decides, errors included).
+
+    Detections are variable-length, so where one starts depends on all before it. But
+    producers give every Detection3D the same header (stamp, frame_id) as a rule: the
+    candidates are the 4-aligned places where the first detection's stamp and frame_id
+    length recur. Each candidate's end is found with array operations (one round per
+    hypothesis rank), and the result is taken only if the candidates chain exactly: the
+    first is where the sequence starts, each one starts where the one before ends, and
+    there are ``n`` of them; then they are the detections the loop would find."""
+    end = len(buf)
+    words = np.frombuffer(buf, "<u4", count=end // 4).astype(np.int64)
+    nw = len(words)
+    first = p + (-p % 4)
+    fw = first >> 2
+    if fw + 3 > nw:
+        return None
+    w0, w1, w2 = words[fw], words[fw + 1], words[fw + 2]
+    hit = words[fw:nw - 2] == w0  # from the first detection on (the array's header matches)
+    hit[hit] = (words[fw + 1:nw - 1][hit] == w1) & (words[fw + 2:][hit] == w2)
+    starts = (np.flatnonzero(hit) + fw) * 4
+    if len(starts) != n or starts[0] != first:
+        return None
+
+    def at(offsets):  # the uint32 at each offset (all multiples of 4), None past the end
+        i = offsets >> 2
+        return words[i] if len(i) == 0 or int(i.max()) < nw else None
+
+    q = starts + 12 + w2
+    counts_at = q + (-q % 4)
+    k = at(counts_at)
+    if k is None or int(k.max()) > (end - first) // (8 * _N_HYP_DOUBLES):
+        return None
+    q = counts_at + 4
+    kmax = int(k.max())
+    cls = np.zeros((n, kmax), dtype=np.int64)
+    for j in range(kmax):
+        rows = np.flatnonzero(k > j)
+        pj = q[rows]
+        length = at(pj)
+        if length is None:
+            return None
+        cls[rows, j] = pj
+        r = pj + 4 + length
+        q[rows] = r + (-(r - 4) % 8) + 8 * _N_HYP_DOUBLES
+    bbox_at = q + (-(q - 4) % 8)
+    q = bbox_at + 80
+    id_at = q + (-q % 4)
+    id_len = at(id_at)
+    if id_len is None:
+        return None
+    ends = id_at + 4 + id_len
+    if np.any(ends[:-1] + (-ends[:-1] % 4) != starts[1:]) or int(ends[-1]) > end:
+        return None
+    ids = [buf[a + 4:a + 3 + m] for a, m in zip(id_at.tolist(), id_len.tolist())]
+    hyp_off = np.concatenate([[0], np.cumsum(k)])
+    cls_at = cls[np.arange(kmax)[None, :] < k[:, None]]
+    return np.column_stack([starts, counts_at]), bbox_at, id_at, ids, hyp_off, cls_at
+
+
+def decode_detection_array(data) -> DecodedDetections:
+    """Decode serialized Detection3DArray bytes (``CdrError`` when they are not one)."""
+    # a Detection3D takes > 100 bytes
+    buf, words, h, n, p = open_array(data, "Detection3DArray", "detections", 100)
+    e = "<"
+    f = _FMTS[e]
+    layout = _layout_vectorized(buf, p, n) if n >= _VECTORIZED_MIN else None
+    if layout is None:
+        layout = _layout_loop(buf, words, p, n)
+    spans, bbox_at, id_at, ids, hyp_off, cls_at = layout
     id_at = np.asarray(id_at, dtype=np.int64)
     if n and np.any(_gather(np.frombuffer(buf, np.uint8), id_at, 4).view("<u4") == 0):
         raise CdrError("bad string: an id of length 0")

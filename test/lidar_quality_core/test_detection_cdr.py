@@ -12,9 +12,10 @@ from std_msgs.msg import Header
 from vision_msgs.msg import Detection3D, Detection3DArray, ObjectHypothesisWithPose
 
 
-def random_array(seed, n=7):
+def random_array(seed, n=7, same_headers=False):
     """Detections with varied string lengths (every alignment), 0..4 hypotheses, random
-    poses and covariances, a NaN box and non-ASCII ids."""
+    poses and covariances, a NaN box and non-ASCII ids. ``same_headers``: every detection
+    has the array's header (as detectors publish them), else each its own."""
     rng = np.random.default_rng(seed)
     h = Header(frame_id="f" * int(rng.integers(0, 9)))
     h.stamp.sec, h.stamp.nanosec = int(rng.integers(-5, 2**31 - 1)), int(rng.integers(0, 10**9))
@@ -23,6 +24,8 @@ def random_array(seed, n=7):
         d = Detection3D(id="é" * int(rng.integers(0, 5)) + "x" * int(rng.integers(0, 7)))
         d.header.frame_id = "g" * int(rng.integers(0, 6))
         d.header.stamp.sec = i
+        if same_headers:
+            d.header = h
         c, s = d.bbox.center, d.bbox.size
         c.position.x, c.position.y, c.position.z = rng.normal(size=3).tolist()
         q = rng.normal(size=4)
@@ -174,3 +177,60 @@ def test_class_names_sharing_prefixes_and_lengths():
     dec = decode_detection_array(serialize_message(msg))
     assert_arrays_equal(dec.arrays, detections_to_arrays(msg))
     assert dec.arrays.labels == names
+
+
+def _decode_both(data, monkeypatch):
+    """(result or CdrError text) of the decoder, with the vectorized walk and with the loop."""
+    from lidar_quality_core import detection_cdr
+
+    out = []
+    for minimum in (0, 1 << 30):
+        monkeypatch.setattr(detection_cdr, "_VECTORIZED_MIN", minimum)
+        try:
+            out.append(decode_detection_array(data))
+        except CdrError as exc:
+            out.append(str(exc))
+    return out
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_vectorized_walk_finds_what_the_loop_finds(seed, monkeypatch):
+    from lidar_quality_core.detection_cdr import _layout_vectorized, open_array
+
+    msg = random_array(seed, n=40, same_headers=True)
+    data = serialize_message(msg)
+    buf, _, _, n, p = open_array(data, "Detection3DArray", "detections", 100)
+    assert _layout_vectorized(buf, p, n) is not None  # the common case takes the fast path
+    fast, loop = _decode_both(data, monkeypatch)
+    assert_arrays_equal(fast.arrays, detections_to_arrays(msg))
+    for name in ("det_spans", "bbox_at", "id_at", "hyp_offsets", "hyp_det", "hyp_class_at",
+                 "hyp_score_at", "hyp_score"):
+        np.testing.assert_array_equal(getattr(fast, name), getattr(loop, name))
+    assert encode_detection_array(fast, np.arange(n)) == encode_detection_array(loop, np.arange(n))
+
+
+def test_vectorized_walk_leaves_other_layouts_to_the_loop():
+    from lidar_quality_core.detection_cdr import _layout_vectorized, open_array
+
+    data = serialize_message(random_array(0, n=40))  # every detection its own stamp
+    buf, _, _, n, p = open_array(data, "Detection3DArray", "detections", 100)
+    assert _layout_vectorized(buf, p, n) is None
+    assert len(decode_detection_array(data)) == 40
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_damaged_bytes_decode_alike_on_both_walks(seed, monkeypatch):
+    rng = np.random.default_rng(seed)
+    good = bytearray(serialize_message(random_array(seed, n=30, same_headers=True)))
+    for _ in range(60):
+        bad = bytearray(good)
+        for at in rng.integers(4, len(bad), size=int(rng.integers(1, 4))):
+            bad[at] = int(rng.integers(0, 256))
+        if rng.uniform() < 0.3:
+            bad = bad[:int(rng.integers(20, len(bad)))]
+        fast, loop = _decode_both(bytes(bad), monkeypatch)
+        if isinstance(loop, str):
+            assert fast == loop
+        else:
+            assert_arrays_equal(fast.arrays, loop.arrays)
+            np.testing.assert_array_equal(fast.det_spans, loop.det_spans)
