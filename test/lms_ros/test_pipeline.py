@@ -356,8 +356,19 @@ def test_processor_outputs(frames, models):
     np.testing.assert_array_equal(pconf, want)
     in_kept = (seg >= 0) & np.isin(seg, res.kept_ids)
     assert np.isfinite(pconf[in_kept]).all() and np.isnan(pconf[~in_kept]).all()
-    # output/segments: every segment in id order
+    # output/segments: every segment in id order; published as bytes that are this message
     sq = out.segments
+    from lidar_quality_msgs.msg import SegmentQualityArray
+    from rclpy.serialization import deserialize_message
+    got = deserialize_message(out.segments_cdr, SegmentQualityArray)
+    floats = ("drift_score", "confidence", "predicted_iou")   # NaN != NaN: apart
+    for a, b in ((got, sq), *zip(got.segments, sq.segments)):
+        names = [k for k in a.get_fields_and_field_types() if k != "segments"]
+        assert [getattr(a, k) for k in names if k not in floats] == \
+            [getattr(b, k) for k in names if k not in floats]
+        np.testing.assert_array_equal([getattr(a, k) for k in names if k in floats],
+                                      [getattr(b, k) for k in names if k in floats])
+    assert len(got.segments) == len(sq.segments)
     assert sq.header == msg.header and len(sq.segments) == res.n_segments
     assert sq.confidence_model_id == models.confidence_model_id
     # models without a training-data profile: no drift monitor, said in the message

@@ -1,0 +1,57 @@
+"""segment_quality_cdr: the bytes are the message rclpy builds from the same values."""
+import numpy as np
+import pytest
+from lidar_quality_core.segment_quality_cdr import encode_segment_quality_array
+from lidar_quality_msgs.msg import SegmentQuality, SegmentQualityArray
+from rclpy.serialization import deserialize_message, serialize_message
+from std_msgs.msg import Header
+
+
+def _case(seed, n):
+    rng = np.random.default_rng(seed)
+    names = ["c" * int(k) for k in rng.integers(0, 12, size=int(rng.integers(1, 6)))]
+    names[0] = "road-é"  # non-ASCII, and a '-'
+    h = Header(frame_id="f" * int(rng.integers(0, 9)))
+    h.stamp.sec, h.stamp.nanosec = int(rng.integers(-5, 2**31 - 1)), int(rng.integers(0, 10**9))
+    cls = rng.integers(0, len(names), n)
+    conf, iou = rng.uniform(size=n), rng.uniform(size=n)
+    conf[rng.uniform(size=n) < 0.3] = np.nan
+    fields = dict(version=1, drift_level=int(rng.integers(0, 6)),
+                  drift_score=float(np.float32(rng.uniform())) if seed % 2 else float("nan"),
+                  drift_window_frames=int(rng.integers(0, 60)),
+                  drift_quantities="q" * int(rng.integers(0, 7)), passthrough=bool(seed % 3))
+    args = (h, "m" * int(rng.integers(0, 9)), "r" * int(rng.integers(0, 9)), cls, names,
+            rng.integers(0, 5000, n), rng.integers(0, 5000, n), conf, iou)
+    return args, fields
+
+
+def _message(h, cid, iid, cls, names, pc, ppc, conf, iou, **fields):
+    segs = [SegmentQuality(segment_id=i, class_index=int(c), class_name=names[c],
+                           point_count=int(a), projected_point_count=int(b),
+                           confidence=float(x), predicted_iou=float(y))
+            for i, (c, a, b, x, y) in enumerate(zip(cls, pc, ppc, conf, iou))]
+    return SegmentQualityArray(header=h, confidence_model_id=cid, iou_model_id=iid,
+                               segments=segs, **fields)
+
+
+@pytest.mark.parametrize("seed,n", [(s, n) for s in range(6) for n in (0, 1, 2, 57)])
+def test_bytes_are_the_message(seed, n):
+    args, fields = _case(seed, n)
+    data = encode_segment_quality_array(*args, **fields)
+    want = _message(*args, **fields)
+    assert len(data) == len(serialize_message(want))
+    got = deserialize_message(data, SegmentQualityArray)
+    assert got.header == want.header
+    assert (got.confidence_model_id, got.iou_model_id) == (want.confidence_model_id,
+                                                           want.iou_model_id)
+    for k in ("version", "drift_level", "drift_window_frames", "drift_quantities",
+              "passthrough"):
+        assert getattr(got, k) == getattr(want, k), k
+    np.testing.assert_array_equal(got.drift_score, want.drift_score)
+    assert len(got.segments) == n
+    for a, b in zip(got.segments, want.segments):   # NaN != NaN: field by field
+        assert (a.segment_id, a.class_index, a.class_name, a.point_count,
+                a.projected_point_count) == (b.segment_id, b.class_index, b.class_name,
+                                             b.point_count, b.projected_point_count)
+        np.testing.assert_array_equal([a.confidence, a.predicted_iou],
+                                      [b.confidence, b.predicted_iou])
