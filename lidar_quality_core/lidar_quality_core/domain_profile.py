@@ -285,16 +285,29 @@ class DriftMonitor:
         self._values: deque = deque()
         self._total = np.zeros((len(self._names), N_FINE + 1))
 
-    def add(self, values: Mapping[str, object]) -> DriftReport:
+    def add(self, values) -> DriftReport:
+        """``values``: ``{quantity: values}``, or ``(names, X)`` for the columns of one
+        (rows, quantities) matrix (lms_node's 114 metrics of ~2000 segments: not split
+        into columns and stacked again)."""
         counts = np.zeros_like(self._total)
-        frame = {k: np.asarray(v, np.float64).reshape(-1) for k, v in values.items()
-                 if k in self._index}
-        by_len: dict[int, list[str]] = {}
-        for k, v in frame.items():
-            by_len.setdefault(len(v), []).append(k)
-        for n, names in by_len.items():   # quantities of a frame's rows: one matrix
+        if isinstance(values, tuple):
+            names, X = values
+            X = np.asarray(X, np.float64).reshape(-1, len(names))
+            cols = [j for j, k in enumerate(names) if k in self._index]
+            frame = {names[j]: X[:, j] for j in cols}
+            groups = [([names[j] for j in cols],
+                       X if len(cols) == X.shape[1] else X[:, cols])]
+        else:
+            frame = {k: np.asarray(v, np.float64).reshape(-1) for k, v in values.items()
+                     if k in self._index}
+            by_len: dict[int, list[str]] = {}
+            for k, v in frame.items():
+                by_len.setdefault(len(v), []).append(k)
+            # quantities of a frame's rows: one matrix
+            groups = [(names, np.stack([frame[k] for k in names], axis=1) if n
+                       else np.zeros((0, len(names)))) for n, names in by_len.items()]
+        for names, V in groups:
             idx = [self._index[k] for k in names]
-            V = np.stack([frame[k] for k in names], axis=1) if n else np.zeros((0, len(idx)))
             counts[idx] = _counts_matrix(V, self._edges[idx])
         self._counts.append(counts)
         self._values.append(frame)
@@ -404,7 +417,7 @@ class DomainCheck:
         self.monitor = None if self._profile is None else DriftMonitor(
             self._profile, window=p.drift_window, warn=p.drift_warn, error=p.drift_error)
 
-    def __call__(self, quantities: Mapping[str, object]) -> DomainVerdict:
+    def __call__(self, quantities) -> DomainVerdict:
         if self.monitor is None:
             return DomainVerdict({"drift": "off: the models record no training-data profile "
                                            "(trained before profiles; retrain to monitor)"})

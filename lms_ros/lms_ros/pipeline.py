@@ -764,7 +764,7 @@ class LmsProcessor:
         self.intensity.note = None
         res = frame_metrics(inp, s, self.intensity)
         conf_k, iou_k = self.models.predict(res.features)
-        verdict = self.domain(dict(zip(res.names, res.features.T)))
+        verdict = self.domain((res.names, res.features))
         if verdict.passthrough:     # out of the models' domain, and no detector score
             conf_k, iou_k = np.full_like(conf_k, np.nan), np.full_like(iou_k, np.nan)
         ns = res.n_segments

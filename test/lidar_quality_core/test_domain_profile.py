@@ -180,3 +180,23 @@ def test_domain_check_verdict_as_the_quality_messages_carry_it():
     c = DetectionQualityArray
     assert (c.DRIFT_UNKNOWN, c.DRIFT_OFF, c.DRIFT_WARMING_UP, c.DRIFT_OK, c.DRIFT_WARN,
             c.DRIFT_ERROR) == (0, 1, 2, 3, 4, 5)
+
+
+def test_monitor_reads_a_matrix_as_its_columns():
+    """``add((names, X))`` (lms_node's metrics) scores and words as ``add`` of the columns,
+    a column the profile does not know left out."""
+    rng = np.random.default_rng(3)
+    train = {"a": rng.normal(size=3000), "b": rng.gamma(2.0, 1.0, 3000)}
+    prof = DomainProfile.of(train, {k: np.repeat(np.arange(6), 500) for k in train})
+    by_dict, by_matrix = (DriftMonitor(prof, window=3, min_frames=1, min_values=1, warn=0.0)
+                          for _ in range(2))
+    for _ in range(5):
+        X = np.column_stack([rng.normal(1.0, 1.0, 40), rng.uniform(size=40),
+                             rng.gamma(2.0, 3.0, 40)])
+        X[rng.uniform(size=X.shape) < 0.1] = np.nan
+        names = ("a", "unknown", "b")
+        r1 = by_dict.add(dict(zip(names, X.T)))
+        r2 = by_matrix.add((names, X))
+        assert (r1.score, r1.level, r1.drifted, r1.text, r1.frames, r1.scored) == (
+            r2.score, r2.level, r2.drifted, r2.text, r2.frames, r2.scored)
+        assert r2.scored == 2
