@@ -37,14 +37,15 @@ _WARMUP_WAIT_S = 30.0
 class OrderedWorker:
     """Runs ``fn(item)`` on a thread of its own, in submission order, keeping at most
     ``max_pending`` items waiting; ``on_overrun(n)`` hears of the items it discarded.
-    ``warmup()``, if given, runs first on the thread; ``ready`` is set after it."""
+    ``warmup()``, if given, runs first on the thread; ``ready`` is set after it
+    (``warmup_error`` says why it failed, else None)."""
 
     def __init__(self, fn: Callable, max_pending: int, on_overrun: Callable[[int], None],
                  name: str = "lq_frame_worker", warmup: Callable[[], None] | None = None):
         if max_pending < 1:
             raise ValueError(f"max_pending must be >= 1, got {max_pending}")
         self._fn, self._max, self._on_overrun = fn, max_pending, on_overrun
-        self._warmup = warmup
+        self._warmup, self.warmup_error = warmup, None
         self.ready = threading.Event()
         self._pending: deque = deque()
         self._cond = threading.Condition()
@@ -72,7 +73,7 @@ class OrderedWorker:
 
     def _loop(self) -> None:
         name_os_thread("lq_frames")
-        _warm_up(self._warmup, self.ready)
+        _warm_up(self)
         while True:
             with self._cond:
                 self._cond.wait_for(lambda: self._pending or self._stopping)
@@ -96,14 +97,15 @@ class OrderedWorker:
             self._thread.join(timeout)
 
 
-def _warm_up(warmup: Callable[[], None] | None, ready: threading.Event) -> None:
+def _warm_up(owner) -> None:
+    """Run an OrderedWorker's or InputReader's ``_warmup`` on its thread, then set ``ready``."""
     try:
-        if warmup is not None:
-            warmup()
-    except MemoryError:
-        pass  # a warm-up the machine cannot afford: the frames pay their own first touch
+        if owner._warmup is not None:
+            owner._warmup()
+    except MemoryError as exc:  # the frames pay their own first touch (said at start-up)
+        owner.warmup_error = f"MemoryError: {exc}"
     finally:
-        ready.set()
+        owner.ready.set()
 
 
 WITH_INFO = Subscription.CallbackType.WithMessageInfo
@@ -140,7 +142,8 @@ class InputReader:
     ``optional`` subscriptions (use_sim_time's /clock, /tf) are read here too, moved out
     of the executor with their events; one of them destroyed under us (use_sim_time
     turned off) is left out from then on, while a destroyed input ends the reader.
-    ``warmup()``, if given, runs first on the thread; ``ready`` is set after it."""
+    ``warmup()``, if given, runs first on the thread; ``ready`` is set after it
+    (``warmup_error`` says why it failed, else None)."""
 
     def __init__(self, node, subscriptions: Sequence, name: str, on_error: Callable[[str], None],
                  optional: Sequence = (), warmup: Callable[[], None] | None = None):
@@ -158,7 +161,7 @@ class InputReader:
         self._on_error = on_error
         self._stopping = False
         self._wake = GuardCondition(None, None, context=self._context)
-        self._warmup = warmup
+        self._warmup, self.warmup_error = warmup, None
         self.ready = threading.Event()
         with self._context.handle:
             self._wait_set = _rclpy.WaitSet(len(self._subs), 1, 0, 0, 0,
@@ -178,7 +181,7 @@ class InputReader:
 
     def _loop(self) -> None:
         name_os_thread("lq_inputs")
-        _warm_up(self._warmup, self.ready)
+        _warm_up(self)
         # Every handle is held (entered) for the reader's life, not per wake: entering
         # some 20 handles per wake cost as much as the wait itself. A subscription is then
         # only destroyed once released: an optional one that left the node is released by
@@ -342,6 +345,7 @@ class SyncedInputs:
                                   warmup=partial(touch_memory, input_mb) if input_mb > 0 else None)
         self.reader.ready.wait(_WARMUP_WAIT_S)
         self.warmup_s = time.monotonic() - t_warm
+        self._report_warmup()
         if diagnostics is not None:
             diagnostics.add_source(self._stats, self.unmatched_dropped, self.frames_lost)
 
@@ -405,6 +409,20 @@ class SyncedInputs:
             if self.watchdog is not None:
                 self.watchdog.matched(time.monotonic())
             self.worker.submit(matched)
+
+    def _report_warmup(self) -> None:
+        """Say, once at start-up, a warm-up that failed or did not finish in time."""
+        problems = [f"{what}: {t.warmup_error or f'not done after {_WARMUP_WAIT_S:g} s'}"
+                    for what, t in (("frame thread", self.worker), ("input thread", self.reader))
+                    if t.warmup_error or not t.ready.is_set()]
+        if not problems:
+            return
+        text = ("start-up warm-up (warmup_memory_mb) incomplete, the first frames may be "
+                f"slow: {'; '.join(problems)}")
+        if self._warn is not None:
+            self._warn("warmup", text, transient=True)
+        else:
+            self._logger.warn(text)
 
     def _reader_error(self, text: str) -> None:
         self._dropped("undecodable_input", "input_error", f"dropping a message: {text}")

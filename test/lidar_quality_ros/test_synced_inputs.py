@@ -299,3 +299,36 @@ def test_inputs_are_ready_only_after_both_threads_warmed_up(ros):
     assert ros.wait_for_match(pub)
     pub.publish(_h(1, 0))
     assert wait_until(lambda: len(node.sets) == 1)
+
+
+class _WarmFails(Node):
+    """A node whose warm-up the machine cannot afford: said once, in /diagnostics too."""
+
+    def __init__(self, **kwargs):
+        super().__init__("warm_fails_node", **kwargs)
+        self.sets = []
+        self.diag = NodeDiagnostics(self, period_s=0)
+        self.inputs = SyncedInputs(self, [(PointStamped, "a")], self.sets.append,
+                                   diagnostics=self.diag, warmup_memory_mb=8)
+
+    def warn_input(self, key, message, level=None, *, transient=False):
+        self.diag.warn(key, message, transient=transient)
+
+
+def test_a_failed_warm_up_is_said_and_the_inputs_go_on(ros, monkeypatch):
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from lidar_quality_ros import synced_inputs
+
+    def cannot(megabytes):
+        raise MemoryError(f"{megabytes} MB")
+    monkeypatch.setattr(synced_inputs, "touch_memory", cannot)
+    node = ros.start(_WarmFails)
+    assert node.inputs.worker.warmup_error == "MemoryError: 6.0 MB"
+    status = node.diag.status()
+    assert status.level == DiagnosticStatus.WARN
+    assert ("warm-up (warmup_memory_mb) incomplete, the first frames may be slow: frame "
+            "thread: MemoryError: 6.0 MB; input thread: MemoryError: 2.0 MB") in status.message
+    pa = ros.sensor_publisher(PointStamped, "a")
+    assert ros.wait_for_match(pa)
+    pa.publish(_h(1, 0))
+    assert wait_until(lambda: len(node.sets) == 1)
