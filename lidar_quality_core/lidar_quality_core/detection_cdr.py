@@ -224,13 +224,13 @@ def _layout_vectorized(buf: bytes, p: int, n: int):
     first is where the sequence starts, each one starts where the one before ends, and
     there are ``n`` of them; then they are the detections the loop would find."""
     end = len(buf)
-    words = np.frombuffer(buf, "<u4", count=end // 4).astype(np.int64)
+    words = np.frombuffer(buf, "<u4", count=end // 4)  # a view: int64 only where read
     nw = len(words)
     first = p + (-p % 4)
     fw = first >> 2
     if fw + 3 > nw:
         return None
-    w0, w1, w2 = words[fw], words[fw + 1], words[fw + 2]
+    w0, w1, w2 = words[fw], words[fw + 1], int(words[fw + 2])
     hit = words[fw:nw - 2] == w0  # from the first detection on (the array's header matches)
     hit[hit] = (words[fw + 1:nw - 1][hit] == w1) & (words[fw + 2:][hit] == w2)
     starts = (np.flatnonzero(hit) + fw) * 4
@@ -239,7 +239,7 @@ def _layout_vectorized(buf: bytes, p: int, n: int):
 
     def at(offsets):  # the uint32 at each offset (all multiples of 4), None past the end
         i = offsets >> 2
-        return words[i] if len(i) == 0 or int(i.max()) < nw else None
+        return words[i].astype(np.int64) if len(i) == 0 or int(i.max()) < nw else None
 
     q = starts + 12 + w2
     counts_at = q + (-q % 4)
