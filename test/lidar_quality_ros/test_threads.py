@@ -39,7 +39,7 @@ def test_freed_memory_is_kept_unless_the_user_set_glibc_s_own_variables():
 
 # On one thread: 48 MB of frame-sized arrays, with or without touch_memory(64) before; the
 # memory [MB] the arrays added to the process (RSS) and what the warm-up kept.
-_FAULTS = """
+_REUSE_PROBE = """
 import sys, threading
 import numpy as np
 from lidar_quality_ros.threads import keep_freed_memory, touch_memory
@@ -65,7 +65,7 @@ def test_touched_memory_stays_with_the_thread_for_its_next_arrays():
     env = {k: v for k, v in os.environ.items() if not k.startswith("MALLOC_")}
 
     def probe(mode):
-        out = subprocess.run([sys.executable, "-c", _FAULTS, mode], env=env, capture_output=True,
+        out = subprocess.run([sys.executable, "-c", _REUSE_PROBE, mode], env=env, capture_output=True,
                              text=True, check=True).stdout.split()
         return int(out[0]), int(out[1])
 
