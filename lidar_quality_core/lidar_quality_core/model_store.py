@@ -719,6 +719,29 @@ class LoadedModel:
         self.class_names = tuple(manifest.get("class_names") or map(str, self.classes))
         tn = manifest.get("target_names")
         self.target_names = tuple(tn) if tn else None
+        #: the compiled walk of an xgboost model's trees (``tree_ensemble``), used for
+        #: batches up to ``tree_ensemble.MAX_ROWS``; None: every batch goes to the library
+        #: (``compiled_note`` says why)
+        self.compiled, self.compiled_note = self._pack()
+
+    def _pack(self):
+        est = self.estimator
+        kind = type(est).__name__
+        if (not type(est).__module__.startswith("xgboost.") or kind not in _XGB_ESTIMATORS
+                or self.task not in ("classification", "regression")):
+            return None, "not an xgboost classifier or regressor"
+        from .tree_ensemble import MAX_ROWS, pack
+
+        self._compiled_max_rows = MAX_ROWS
+        booster = est if kind == "Booster" else est.get_booster()
+        missing = getattr(est, "missing", float("nan"))
+        try:
+            packed, why = pack(booster, float("nan") if missing is None else missing)
+        except (KeyError, ValueError, TypeError, IndexError) as e:  # a model JSON we do not know
+            packed, why = None, f"unreadable tree dump ({e})"
+        if packed is not None and packed.n_features != self.n_features:
+            packed, why = None, f"{packed.n_features} features, manifest {self.n_features}"
+        return packed, why
 
     def __repr__(self) -> str:
         return (f"LoadedModel({self.path.name!r}, id={self.model_id!r}, task={self.task}, "
@@ -740,6 +763,8 @@ class LoadedModel:
         return X
 
     def _raw(self, X: np.ndarray) -> np.ndarray:
+        if self.compiled is not None and len(X) <= self._compiled_max_rows:
+            return self.compiled.predict(X)
         if self._kind == "Booster":
             import xgboost
 

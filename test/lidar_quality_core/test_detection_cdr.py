@@ -180,12 +180,14 @@ def test_class_names_sharing_prefixes_and_lengths():
 
 
 def _decode_both(data, monkeypatch):
-    """(result or CdrError text) of the decoder, with the vectorized walk and with the loop."""
+    """(result or CdrError text) of the decoder with the compiled walk, and with the Python
+    loop walking the layout and ``_class_codes`` grouping the class names."""
     from lidar_quality_core import detection_cdr
 
     out = []
-    for minimum in (0, 1 << 30):
-        monkeypatch.setattr(detection_cdr, "_VECTORIZED_MIN", minimum)
+    compiled = detection_cdr._walk
+    for walk in (compiled, lambda raw, p, n: (0,) + (None,) * 9):
+        monkeypatch.setattr(detection_cdr, "_walk", walk)
         try:
             out.append(decode_detection_array(data))
         except CdrError as exc:
@@ -193,35 +195,46 @@ def _decode_both(data, monkeypatch):
     return out
 
 
+@pytest.mark.parametrize("same_headers", [True, False])
 @pytest.mark.parametrize("seed", range(8))
-def test_vectorized_walk_finds_what_the_loop_finds(seed, monkeypatch):
-    from lidar_quality_core.detection_cdr import _layout_vectorized, open_array
+def test_compiled_walk_finds_what_the_loop_finds(seed, same_headers, monkeypatch):
+    from lidar_quality_core.detection_cdr import _walk, open_array
 
-    msg = random_array(seed, n=40, same_headers=True)
+    msg = random_array(seed, n=40, same_headers=same_headers)
     data = serialize_message(msg)
     buf, _, _, n, p = open_array(data, "Detection3DArray", "detections", 100)
-    assert _layout_vectorized(buf, p, n) is not None  # the common case takes the fast path
+    assert _walk(np.frombuffer(buf, np.uint8), p, n)[0] == 1  # valid bytes: the fast path
     fast, loop = _decode_both(data, monkeypatch)
     assert_arrays_equal(fast.arrays, detections_to_arrays(msg))
+    assert_arrays_equal(fast.arrays, loop.arrays)
     for name in ("det_spans", "bbox_at", "id_at", "hyp_offsets", "hyp_det", "hyp_class_at",
                  "hyp_score_at", "hyp_score"):
         np.testing.assert_array_equal(getattr(fast, name), getattr(loop, name))
     assert encode_detection_array(fast, np.arange(n)) == encode_detection_array(loop, np.arange(n))
 
 
-def test_vectorized_walk_leaves_other_layouts_to_the_loop():
-    from lidar_quality_core.detection_cdr import _layout_vectorized, open_array
+def test_many_class_names_are_grouped_alike(monkeypatch):
+    from lidar_quality_core import detection_cdr
 
-    data = serialize_message(random_array(0, n=40))  # every detection its own stamp
-    buf, _, _, n, p = open_array(data, "Detection3DArray", "detections", 100)
-    assert _layout_vectorized(buf, p, n) is None
-    assert len(decode_detection_array(data)) == 40
+    msg = random_array(3, n=30)
+    k = 0
+    for d in msg.detections:  # more distinct names than the compiled grouping keeps
+        for r in d.results:
+            r.hypothesis.class_id = f"class_{k % (detection_cdr._MAX_CLASSES + 20)}"
+            k += 1
+    assert k > detection_cdr._MAX_CLASSES
+    data = serialize_message(msg)
+    buf, _, _, n, p = detection_cdr.open_array(data, "Detection3DArray", "detections", 100)
+    assert detection_cdr._walk(np.frombuffer(buf, np.uint8), p, n)[0] == 2
+    fast, loop = _decode_both(data, monkeypatch)
+    assert_arrays_equal(fast.arrays, detections_to_arrays(msg))
+    assert_arrays_equal(fast.arrays, loop.arrays)
 
 
 @pytest.mark.parametrize("seed", range(6))
 def test_damaged_bytes_decode_alike_on_both_walks(seed, monkeypatch):
     rng = np.random.default_rng(seed)
-    good = bytearray(serialize_message(random_array(seed, n=30, same_headers=True)))
+    good = bytearray(serialize_message(random_array(seed, n=30, same_headers=seed % 2 == 0)))
     for _ in range(60):
         bad = bytearray(good)
         for at in rng.integers(4, len(bad), size=int(rng.integers(1, 4))):
