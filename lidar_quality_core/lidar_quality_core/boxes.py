@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+from numba import njit
 
 BOX_COLUMNS = ("x", "y", "z", "l", "w", "h", "yaw")
 #: |roll| or |pitch| above this [deg] is reported: float32 quaternions of upright boxes
@@ -104,6 +105,69 @@ def detections_to_arrays(detections) -> DetectionArrays:
     return arrays_from_fields(raw, ids, hyp_det, hyp_cls, hyp_sc)
 
 
+#: ``_hypotheses``' flags, in the order the reasons are listed
+_REASONS = ((1, "no hypothesis in results"), (2, "non-finite centre"), (4, "non-finite size"),
+            (8, "size <= 0"), (16, "non-finite orientation"), (32, "zero quaternion"),
+            (64, "non-finite score"))
+
+
+@njit("Tuple((float64[::1], int64[::1], float64[:, ::1], int64[::1]))(float64[:, ::1], "
+      "int64[::1], int64[::1], float64[::1], boolean[::1])", cache=True, nogil=True)
+def _hypotheses(raw, det, codes, sc, name_empty):
+    """Per detection: score and class code (-1: none) of its top hypothesis, the class
+    score table (classes, N) and the flags of ``_REASONS``; one pass in message order."""
+    n, n_hyp, n_names = raw.shape[0], det.shape[0], name_empty.shape[0]
+    cls = np.full((n_names, n), np.nan)
+    best = np.full(n, -1, np.int64)         # index of the top hypothesis so far
+    nonfinite = np.zeros(n, np.bool_)
+    # the rule for a detection with a non-finite score, as one reads the message: a
+    # hypothesis wins if it scores higher, or while the label is still empty and the best
+    # is -inf (e.g. an empty class_id scoring -inf yields to the next hypothesis)
+    nf_score = np.full(n, -np.inf)
+    nf_code = np.full(n, -1, np.int64)
+    nf_empty = np.ones(n, np.bool_)
+    for j in range(n_hyp):
+        i, c, v = det[j], codes[j], sc[j]
+        cls[c, i] = v                       # a class given twice: the last one
+        if best[i] < 0 or v > sc[best[i]]:  # strictly higher; NaN never wins, a NaN first stays
+            best[i] = j
+        if not np.isfinite(v):
+            nonfinite[i] = True
+        if v > nf_score[i] or (nf_empty[i] and nf_score[i] == -np.inf):
+            nf_score[i], nf_code[i], nf_empty[i] = v, c, name_empty[c]
+    scores = np.full(n, np.nan)
+    top = np.full(n, -1, np.int64)
+    flags = np.zeros(n, np.int64)
+    for i in range(n):
+        if best[i] < 0:
+            flags[i] |= 1
+        elif nonfinite[i]:
+            scores[i], top[i] = nf_score[i], nf_code[i]
+        else:
+            scores[i], top[i] = sc[best[i]], codes[best[i]]
+        centre, size, quat = True, True, True
+        for k in range(3):
+            centre &= np.isfinite(raw[i, k])
+            size &= np.isfinite(raw[i, 3 + k])
+        for k in range(4):
+            quat &= np.isfinite(raw[i, 6 + k])
+        if not centre:
+            flags[i] |= 2
+        if not size:
+            flags[i] |= 4
+        elif raw[i, 3] <= 0 or raw[i, 4] <= 0 or raw[i, 5] <= 0:
+            flags[i] |= 8
+        if not quat:
+            flags[i] |= 16
+        elif centre and size:
+            q2 = raw[i, 6] ** 2 + raw[i, 7] ** 2 + raw[i, 8] ** 2 + raw[i, 9] ** 2
+            if np.sqrt(q2) < 1e-9:
+                flags[i] |= 32
+        if best[i] >= 0 and not np.isfinite(scores[i]):
+            flags[i] |= 64
+    return scores, top, cls, flags
+
+
 def arrays_from_fields(raw: np.ndarray, ids: list[str], hyp_det, hyp_cls, hyp_score
                        ) -> DetectionArrays:
     """DetectionArrays from fields already read out of the detections (of messages, or of
@@ -126,52 +190,18 @@ def arrays_from_fields(raw: np.ndarray, ids: list[str], hyp_det, hyp_cls, hyp_sc
         codes = np.fromiter((lut.setdefault(c, len(lut)) for c in hyp_cls), np.int64,
                             count=n_hyp)
         names = list(lut)
-    hyps: dict[str, np.ndarray] = {}
-    for k, name in enumerate(names):
-        m = codes == k
-        col = np.full(n, np.nan)
-        col[det[m]] = sc[m]  # a class given twice in one detection: the last one
-        hyps[name] = col
-    has = np.bincount(det, minlength=n)[:n] > 0 if n_hyp else np.zeros(n, dtype=bool)
-    top = np.zeros(n, dtype=np.int64)
-    if n_hyp:
-        first = np.zeros(n, dtype=np.int64)
-        first[det[::-1]] = np.arange(n_hyp - 1, -1, -1)
-        # highest score, earliest on ties; NaN sorts last
-        order = np.lexsort((np.arange(n_hyp), -np.where(np.isnan(sc), -np.inf, sc), det))
-        top[has] = order[np.searchsorted(det[order], np.flatnonzero(has))]
-        nan_first = has & np.isnan(sc[first])
-        top[nan_first] = first[nan_first]
-    scores = np.where(has, sc[top] if n_hyp else np.nan, np.nan)
-    top_codes = codes[top].tolist() if n_hyp else [0] * n
-    labels = [names[c] if h else "" for c, h in zip(top_codes, has.tolist())]
-    for i in np.unique(det[~np.isfinite(sc)]).tolist():
-        # a non-finite hypothesis score (rare, invalid anyway): the message reading rule one
-        # by one,
-        # e.g. an empty class_id scoring -inf yields to the next hypothesis
-        best, label = -np.inf, ""
-        for j in np.flatnonzero(det == i).tolist():
-            if sc[j] > best or not label and best == -np.inf:
-                best, label = sc[j], names[codes[j]]
-        scores[i], labels[i] = best, label
-    reasons = ["" if h else "no hypothesis in results" for h in has.tolist()]
-    quat = raw[:, 6:10]
-    rpy = quaternion_to_rpy(quat) if n else np.zeros((0, 3))
+    name_empty = np.array([not c for c in names], dtype=np.bool_)
+    scores, top, cls, flags = _hypotheses(*(np.require(a, t, "CW") for a, t in (
+        (raw, np.float64), (det, np.int64), (codes, np.int64), (sc, np.float64),
+        (name_empty, np.bool_))))
+    hyps = {name: cls[k] for k, name in enumerate(names)}
+    labels = [names[c] if c >= 0 else "" for c in top.tolist()]
+    reasons = [""] * n
+    for i, f in zip(np.flatnonzero(flags).tolist(), flags[flags != 0].tolist()):
+        reasons[i] = "; ".join(why for bit, why in _REASONS if f & bit)
+    rpy = quaternion_to_rpy(raw[:, 6:10]) if n else np.zeros((0, 3))
     boxes = np.concatenate([raw[:, :6], rpy[:, 2:3]], axis=1)
-    finite = np.isfinite(raw[:, :10]).all(axis=1)
-    checks = [
-        (~np.isfinite(raw[:, :3]).all(axis=1), "non-finite centre"),
-        (~np.isfinite(raw[:, 3:6]).all(axis=1), "non-finite size"),
-        (np.isfinite(raw[:, 3:6]).all(axis=1) & (raw[:, 3:6] <= 0).any(axis=1), "size <= 0"),
-        (~np.isfinite(quat).all(axis=1), "non-finite orientation"),
-        (finite & (np.linalg.norm(np.where(np.isfinite(quat), quat, 0), axis=1) < 1e-9),
-         "zero quaternion"),
-        (~np.isfinite(scores) & has, "non-finite score"),
-    ]
-    for bad, why in checks:
-        for i in np.flatnonzero(bad):
-            reasons[i] = f"{reasons[i]}; {why}" if reasons[i] else why
-    valid = np.array([not r for r in reasons], dtype=bool)
+    valid = flags == 0
     return DetectionArrays(boxes=boxes, scores=scores, labels=labels, ids=list(ids),
                            roll_pitch=rpy[:, :2], valid=valid, reasons=reasons,
                            class_scores=hyps)

@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 from typing import Iterable, Mapping
 
 import numpy as np
+from numba import njit
 
 from .parameters import param
 
@@ -189,18 +190,26 @@ def psi(profile: QuantityProfile, values) -> float:
     return psi_counts(profile, fine_counts(profile, values))
 
 
-def _counts_matrix(V: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """:func:`fine_counts` of each column of ``V`` (n, k) against ``edges`` (k, N_FINE - 1)
-    at once: (k, N_FINE + 1)."""
+@njit("void(float64[:, ::1], int64[::1], float64[:, ::1], float64[:, ::1])", cache=True,
+      nogil=True)
+def _add_counts(V, rows, edges, out):
+    """Add :func:`fine_counts` of each column ``j`` of ``V`` (n, k) to ``out[rows[j]]``
+    against ``edges[rows[j]]`` (one compiled pass: a value's bin is the number of edges at
+    or below it; a non-finite value is missing)."""
     n, k = V.shape
-    finite = np.isfinite(V)
-    # a value's bin = the number of edges at or below it (searchsorted, side right)
-    bins = (V[:, :, None] >= edges[None, :, :]).sum(axis=2)
-    flat = (bins + np.arange(k) * N_FINE)[finite]
-    out = np.zeros((k, N_FINE + 1))
-    out[:, :N_FINE] = np.bincount(flat, minlength=k * N_FINE).reshape(k, N_FINE)
-    out[:, N_FINE] = n - finite.sum(axis=0)
-    return out
+    n_edges = edges.shape[1]
+    for j in range(k):
+        r = rows[j]
+        e = edges[r]
+        for i in range(n):
+            v = V[i, j]
+            if not np.isfinite(v):
+                out[r, n_edges + 1] += 1.0
+                continue
+            b = 0
+            while b < n_edges and e[b] <= v:
+                b += 1
+            out[r, b] += 1.0
 
 
 def _psi_matrix(counts: np.ndarray, mass: np.ndarray, n: float, train_n: np.ndarray):
@@ -240,6 +249,30 @@ def explain(name: str, profile: QuantityProfile, values) -> str:
     return f"{text}: {hint}" if hint else text
 
 
+class _GroupValues:
+    """One frame's values as the matrices they came in (``[(names, X), ...]``), read by
+    quantity like a dict (only :func:`explain` reads them, for the drifted quantities)."""
+
+    __slots__ = ("_groups", "_where")
+
+    def __init__(self, groups):
+        self._groups = groups
+        self._where = None
+
+    def _find(self, k):
+        if self._where is None:
+            self._where = {n: (g, j) for g, (names, _) in enumerate(self._groups)
+                           for j, n in enumerate(names)}
+        return self._where.get(k)
+
+    def __contains__(self, k) -> bool:
+        return self._find(k) is not None
+
+    def __getitem__(self, k) -> np.ndarray:
+        g, j = self._find(k)
+        return self._groups[g][1][:, j]
+
+
 @dataclass
 class DriftReport:
     """The monitor's state after a frame: window score, level, the most drifted
@@ -256,8 +289,9 @@ class DriftReport:
 
 class DriftMonitor:
     """Rolling drift of live frames against a profile (module docstring). ``add(values)``
-    takes one frame's ``{quantity: values}`` (per-row values or one per-frame value) and
-    returns the :class:`DriftReport` over the last ``window`` frames."""
+    takes one frame's ``{quantity: values}`` (per-row values or one per-frame value; or
+    the same as matrices, see :meth:`add`) and returns the :class:`DriftReport` over the
+    last ``window`` frames."""
 
     def __init__(self, profile: DomainProfile, *, window: int = 50, warn: float = 0.25,
                  error: float = 0.5, top: int = 3, min_values: int = 30,
@@ -286,18 +320,14 @@ class DriftMonitor:
         self._total = np.zeros((len(self._names), N_FINE + 1))
 
     def add(self, values) -> DriftReport:
-        """``values``: ``{quantity: values}``, or ``(names, X)`` for the columns of one
+        """``values``: ``{quantity: values}``, ``(names, X)`` for the columns of one
         (rows, quantities) matrix (lms_node's 114 metrics of ~2000 segments: not split
-        into columns and stacked again)."""
+        into columns and stacked again), or a list of such ``(names, X)`` (LMD: the
+        boxes' features and scores, and the frame's point count)."""
         counts = np.zeros_like(self._total)
         if isinstance(values, tuple):
-            names, X = values
-            X = np.asarray(X, np.float64).reshape(-1, len(names))
-            cols = [j for j, k in enumerate(names) if k in self._index]
-            frame = {names[j]: X[:, j] for j in cols}
-            groups = [([names[j] for j in cols],
-                       X if len(cols) == X.shape[1] else X[:, cols])]
-        else:
+            values = [values]
+        if isinstance(values, Mapping):
             frame = {k: np.asarray(v, np.float64).reshape(-1) for k, v in values.items()
                      if k in self._index}
             by_len: dict[int, list[str]] = {}
@@ -306,9 +336,18 @@ class DriftMonitor:
             # quantities of a frame's rows: one matrix
             groups = [(names, np.stack([frame[k] for k in names], axis=1) if n
                        else np.zeros((0, len(names)))) for n, names in by_len.items()]
+        else:
+            groups = []
+            for names, X in values:
+                X = np.asarray(X, np.float64).reshape(-1, len(names))
+                cols = [j for j, k in enumerate(names) if k in self._index]
+                groups.append(([names[j] for j in cols] if len(cols) < len(names) else names,
+                               X if len(cols) == X.shape[1] else X[:, cols]))
+            frame = _GroupValues(groups)
         for names, V in groups:
-            idx = [self._index[k] for k in names]
-            counts[idx] = _counts_matrix(V, self._edges[idx])
+            _add_counts(np.require(V, np.float64, "CW"),
+                        np.array([self._index[k] for k in names], np.int64),
+                        self._edges, counts)
         self._counts.append(counts)
         self._values.append(frame)
         self._total += counts

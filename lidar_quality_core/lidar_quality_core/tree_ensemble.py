@@ -88,7 +88,7 @@ class TreeEnsemble:
 
     def margin(self, X) -> np.ndarray:
         """Summed tree outputs plus the base margin, float32 ``(n,)``."""
-        X = np.ascontiguousarray(X, dtype=np.float32)
+        X = np.require(X, np.float32, "CW")  # the kernel's signature: writable, C order
         if X.ndim != 2 or X.shape[1] != self.n_features:
             raise ValueError(f"X must be (n, {self.n_features}), got {X.shape}")
         out = np.empty(len(X), dtype=np.float32)

@@ -573,18 +573,16 @@ class LmdProcessor:
                            conf[idx], texts, ns="lmd")
 
 
-def frame_quantities(frame: LmdFrame, feature_names) -> dict:
+def frame_quantities(frame: LmdFrame, feature_names) -> list:
     """What the drift monitor compares with the training profile (``meta_model``'s
     ``training_profile`` as ``lmd-train`` records it): every feature of the valid boxes,
-    their detector scores and the frame's points. (Not the number of boxes: how many
-    objects a frame holds is the scene's, and differs between the training sequences
-    themselves.)"""
+    their detector scores and the frame's points, as ``DriftMonitor.add`` takes matrices.
+    (Not the number of boxes: how many objects a frame holds is the scene's, and differs
+    between the training sequences themselves.)"""
     v = frame.valid
-    X = frame.features[v]
-    out = {name: X[:, j] for j, name in enumerate(feature_names)}
-    out.update({"detector score": frame.detections.scores[v],
-                "points per frame": [frame.n_points]})
-    return out
+    return [(tuple(feature_names) + ("detector score",),
+             np.column_stack([frame.features[v], frame.detections.scores[v]])),
+            (("points per frame",), np.array([[float(frame.n_points)]]))]
 
 
 def frame_id_mismatch(cloud, detections, proposals) -> str | None:

@@ -618,14 +618,13 @@ def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, mode
     return MimoOutput(frame, conf, iou, dets, unc, n_fallback, kept, dict(removed), verdict)
 
 
-def frame_quantities(frame: MimoFrame, feature_names) -> dict:
+def frame_quantities(frame: MimoFrame, feature_names) -> list:
     """What the drift monitor compares with the training profile (as ``mimo-train``
-    records it): every feature of the merged detections and their scores. (Not their
-    number: how many objects a frame holds is the scene's, and differs between the
-    training sequences themselves.)"""
-    out = {name: frame.features[:, j] for j, name in enumerate(feature_names)}
-    out["detector score"] = frame.merge.scores
-    return out
+    records it): every feature of the merged detections and their scores, as one matrix
+    (``DriftMonitor.add``). (Not their number: how many objects a frame holds is the
+    scene's, and differs between the training sequences themselves.)"""
+    return [(tuple(feature_names) + ("detector score",),
+             np.column_stack([frame.features, frame.merge.scores]))]
 
 
 class NoHeadError(FrameRejected):

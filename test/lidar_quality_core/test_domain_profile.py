@@ -200,3 +200,24 @@ def test_monitor_reads_a_matrix_as_its_columns():
         assert (r1.score, r1.level, r1.drifted, r1.text, r1.frames, r1.scored) == (
             r2.score, r2.level, r2.drifted, r2.text, r2.frames, r2.scored)
         assert r2.scored == 2
+
+
+def test_monitor_reads_groups_of_matrices_as_their_columns():
+    """``add([(names, X), (names, X)])`` (lmd_node: the boxes' features and one value per
+    frame) scores and words as ``add`` of the columns."""
+    rng = np.random.default_rng(4)
+    train = {"a": rng.normal(size=3000), "b": rng.gamma(2.0, 1.0, 3000),
+             "points": rng.normal(1e5, 1e4, 3000)}
+    prof = DomainProfile.of(train, {k: np.repeat(np.arange(6), 500) for k in train})
+    by_dict, by_groups = (DriftMonitor(prof, window=4, min_frames=1, min_values=1, warn=0.0)
+                          for _ in range(2))
+    for k in range(8):
+        X = np.column_stack([rng.normal(1.0, 1.0, 30), rng.gamma(2.0, 3.0, 30)])
+        X[rng.uniform(size=X.shape) < 0.1] = np.nan
+        points = 5e4 * (1 + k)
+        r1 = by_dict.add({"a": X[:, 0], "b": X[:, 1], "points": [points]})
+        r2 = by_groups.add([(("a", "b"), X), (("points", "unknown"), [[points, 1.0]])])
+        assert (r1.score, r1.level, r1.drifted, r1.text, r1.frames, r1.scored) == (
+            r2.score, r2.level, r2.drifted, r2.text, r2.frames, r2.scored)
+        assert r2.scored == 3
+

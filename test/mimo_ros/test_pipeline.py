@@ -598,7 +598,9 @@ def test_drift_check_flags_another_detectors_scores(tmp_path):
     X = np.vstack([f.features for f in train])
     prof = training_profile(X, names, {
         "detector score": np.concatenate([f.merge.scores for f in train])})
-    assert set(prof["quantities"]) == set(frame_quantities(train[0], names))
+    (quantities, X0), = frame_quantities(train[0], names)
+    assert set(prof["quantities"]) == set(quantities) and X0.shape == (len(train[0].features),
+                                                                       len(quantities))
     y = (np.arange(len(X)) % 2).astype(float)
     c, r = save_pair(tmp_path, "mimo", fit_estimator("linear", "classification", X, y),
                      fit_estimator("linear", "regression", X, y), names, domain_profile=prof)
