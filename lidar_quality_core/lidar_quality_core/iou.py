@@ -7,9 +7,10 @@ values, non-positive ``l``/``w``, or ``h`` for 3D) have IoU 0 with everything.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit
 from scipy.spatial import cKDTree
 
-from .box_geometry import _corners_cs, as_boxes
+from .box_geometry import as_boxes
 
 __all__ = ["bev_intersection_area", "iou_bev", "iou_3d", "iou_bev_pairs", "iou_3d_pairs",
            "sparse_iou"]
@@ -79,71 +80,80 @@ def _pair_area(a: np.ndarray, b: np.ndarray, trig=None) -> np.ndarray:
         return np.zeros(0)
     if trig is None:
         trig = (np.cos(a[:, 6]), np.sin(a[:, 6]), np.cos(b[:, 6]), np.sin(b[:, 6]))
-    ca, sa, cb, sb = trig
-    # Work in b's frame (relative coordinates keep precision far from the origin, and b's
-    # edges become the axis-aligned lines x = +-l/2, y = +-w/2).
-    dx, dy = a[:, 0] - b[:, 0], a[:, 1] - b[:, 1]
-    loc = np.zeros_like(a)
-    loc[:, 0] = cb * dx + sb * dy
-    loc[:, 1] = cb * dy - sb * dx
-    loc[:, 3:6] = a[:, 3:6]
-    # relative yaw a - b from the angle-difference identities (no trig per pair)
-    pa = _corners_cs(loc, ca * cb + sa * sb, sa * cb - ca * sb).transpose(1, 2, 0)
-    hl, hw = b[:, 3] / 2, b[:, 4] / 2
-    # Subject polygon as k vertex slots (rows) plus one sentinel row. Slots past the vertex
-    # count and the sentinel repeat vertex 0, so row j+1 is always vertex j's successor.
-    k = 4
-    vx = np.concatenate([pa[:, 0], pa[:1, 0]])
-    vy = np.concatenate([pa[:, 1], pa[:1, 1]])
-    cnt = np.full(n, k)
-    tol = _SNAP * (_radius(a) + _radius(b))
-    for e in range(4):  # half-planes of b: x <= l/2, y <= w/2, x >= -l/2, y >= -w/2
-        if e == 0:
-            s = hl - vx
-        elif e == 1:
-            s = hw - vy
-        elif e == 2:
-            s = vx + hl
-        else:
-            s = vy + hw
-        s[np.abs(s) <= tol] = 0.0  # on-edge vertices count as inside, never as crossings
-        s0, s1 = s[:-1], s[1:]
-        live = np.arange(k)[:, None] < cnt
-        keep = np.empty((k, 2, n), dtype=bool)  # (slot, [vertex, crossing], pair)
-        np.logical_and(live, s0 >= 0, out=keep[:, 0])
-        cross = keep[:, 1]
-        np.logical_and(live, s0 * s1 < 0, out=cross)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(cross, s0 / (s0 - s1), 0.0)
-        ox = np.empty((k, 2, n))
-        oy = np.empty((k, 2, n))
-        ox[:, 0], oy[:, 0] = vx[:-1], vy[:-1]
-        ox[:, 1] = vx[:-1] + t * (vx[1:] - vx[:-1])
-        oy[:, 1] = vy[:-1] + t * (vy[1:] - vy[:-1])
-        # Compact the kept vertices to the front. A convex polygon cut by a half-plane
-        # gains at most one vertex: 4 -> 5 -> ... -> 8 slots.
-        keep = keep.reshape(2 * k, n)
-        dest = np.empty((2 * k, n), dtype=np.intp)
-        acc = np.full(n, -1, dtype=np.intp)
-        for row in range(2 * k):  # <= 16 rows; numpy's axis-0 cumsum is far slower
-            acc += keep[row]
-            dest[row] = acc
-        cnt = np.minimum(acc + 1, k + 1)
-        idx = np.flatnonzero(keep)
-        d = dest.ravel()[idx]
-        ok = d <= k
-        k += 1
-        flat = d[ok] * n + idx[ok] % n
-        vx = np.zeros((k + 1, n))
-        vy = np.zeros((k + 1, n))
-        vx.ravel()[flat] = ox.ravel()[idx[ok]]
-        vy.ravel()[flat] = oy.ravel()[idx[ok]]
-        pad = np.arange(k + 1)[:, None] >= cnt
-        vx = np.where(pad, vx[0], vx)
-        vy = np.where(pad, vy[0], vy)
-    area = 0.5 * np.sum(vx[:-1] * vy[1:] - vy[:-1] * vx[1:], axis=0)
-    area[cnt < 3] = 0.0
-    return np.clip(area, 0.0, np.minimum(a[:, 3] * a[:, 4], b[:, 3] * b[:, 4]))
+    f8 = np.float64
+    out = np.empty(n)
+    _clip_areas(*(np.require(x, f8, "C") for x in (a, b, *trig)), _SNAP, out)
+    return out
+
+
+@njit("void(float64[:, ::1], float64[:, ::1], float64[::1], float64[::1], float64[::1], "
+      "float64[::1], float64, float64[::1])", cache=True, nogil=True)
+def _clip_areas(a, b, ca, sa, cb, sb, snap, out):
+    """Sutherland-Hodgman per pair: box a's rectangle, in b's frame (relative coordinates
+    keep precision far from the origin, and b's edges become the lines x = +-l/2,
+    y = +-w/2), clipped by b's four half-planes; then the shoelace area. Vertices within
+    ``snap`` x (the two radii) of an edge count as on it: inside, never a crossing."""
+    vx = np.empty(16)
+    vy = np.empty(16)
+    nx = np.empty(16)
+    ny = np.empty(16)
+    s = np.empty(16)
+    for p in range(a.shape[0]):
+        dx, dy = a[p, 0] - b[p, 0], a[p, 1] - b[p, 1]
+        lx = cb[p] * dx + sb[p] * dy
+        ly = cb[p] * dy - sb[p] * dx
+        # relative yaw a - b from the angle-difference identities (no trig per pair)
+        c = ca[p] * cb[p] + sa[p] * sb[p]
+        sn = sa[p] * cb[p] - ca[p] * sb[p]
+        hla, hwa = 0.5 * a[p, 3], 0.5 * a[p, 4]
+        ax, ay = c * hla, sn * hla      # half heading axis
+        bx, by = -sn * hwa, c * hwa     # half lateral axis
+        # corners counter-clockwise: front-left, rear-left, rear-right, front-right
+        vx[0], vy[0] = lx + ax + bx, ly + ay + by
+        vx[1], vy[1] = lx - ax + bx, ly - ay + by
+        vx[2], vy[2] = lx - ax - bx, ly - ay - by
+        vx[3], vy[3] = lx + ax - bx, ly + ay - by
+        hl, hw = b[p, 3] / 2, b[p, 4] / 2
+        tol = snap * (0.5 * np.sqrt(a[p, 3] * a[p, 3] + a[p, 4] * a[p, 4])
+                      + 0.5 * np.sqrt(b[p, 3] * b[p, 3] + b[p, 4] * b[p, 4]))
+        cnt = 4
+        for e in range(4):  # half-planes of b: x <= l/2, y <= w/2, x >= -l/2, y >= -w/2
+            for j in range(cnt):
+                if e == 0:
+                    v = hl - vx[j]
+                elif e == 1:
+                    v = hw - vy[j]
+                elif e == 2:
+                    v = vx[j] + hl
+                else:
+                    v = vy[j] + hw
+                s[j] = 0.0 if abs(v) <= tol else v
+            m = 0
+            cap = 5 + e  # a convex polygon cut by a half-plane gains at most one vertex
+            for j in range(cnt):
+                k = j + 1 if j + 1 < cnt else 0
+                s0, s1 = s[j], s[k]
+                if s0 >= 0 and m < cap:
+                    nx[m], ny[m] = vx[j], vy[j]
+                    m += 1
+                if s0 * s1 < 0 and m < cap:
+                    t = s0 / (s0 - s1)
+                    nx[m], ny[m] = vx[j] + t * (vx[k] - vx[j]), vy[j] + t * (vy[k] - vy[j])
+                    m += 1
+            cnt = m
+            for j in range(cnt):
+                vx[j], vy[j] = nx[j], ny[j]
+            if cnt == 0:
+                break
+        if cnt < 3:
+            out[p] = 0.0
+            continue
+        area = 0.0
+        for j in range(cnt):
+            k = j + 1 if j + 1 < cnt else 0
+            area += vx[j] * vy[k] - vy[j] * vx[k]
+        area *= 0.5
+        out[p] = min(max(area, 0.0), min(a[p, 3] * a[p, 4], b[p, 3] * b[p, 4]))
 
 
 def _z_overlap(a: np.ndarray, b: np.ndarray) -> np.ndarray:
