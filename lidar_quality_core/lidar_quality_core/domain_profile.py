@@ -212,19 +212,51 @@ def _add_counts(V, rows, edges, out):
             out[r, b] += 1.0
 
 
-def _psi_matrix(counts: np.ndarray, mass: np.ndarray, n: float, train_n: np.ndarray):
-    """:func:`psi_counts` of rows of ``counts`` that all hold ``n`` values."""
-    n_bins = int(np.clip(n // VALUES_PER_BIN, 2, N_FINE))
-    starts = np.round(np.linspace(0, N_FINE, n_bins + 1)).astype(int)[:-1]
-    c = np.c_[np.add.reduceat(counts[:, :N_FINE], starts, axis=1), counts[:, N_FINE]]
-    q = np.c_[np.add.reduceat(mass[:, :N_FINE], starts, axis=1), mass[:, N_FINE]]
-    used = (c > 0) | (q > 0)
-    n_used = used.sum(axis=1)
-    q = np.maximum(q, EPS)
-    p = (c + 0.5) / (n + 0.5 * n_used)[:, None]
-    raw = np.where(used, (p - q) * np.log(p / q), 0.0).sum(axis=1)
-    expected = (n_used - 1) * (1.0 / n + 1.0 / np.maximum(train_n, 1))
-    return np.maximum(raw - expected, 0.0)
+@njit("void(float64[:, ::1], float64[:, ::1], float64[::1], float64[::1], boolean[::1], "
+      "float64, float64[::1])", cache=True, nogil=True)
+def _window_scores(total, mass, train_n, spread, empty, min_values, out):
+    """Per quantity (row) with at least ``min_values`` values in the window: the
+    :func:`psi_counts` of its ``total`` counts minus its ``spread`` (beyond what one
+    training sequence already differs from the mix of all); the rest stays NaN. One
+    compiled pass (:func:`psi_counts`' arithmetic; sums in bin order)."""
+    c = np.empty(N_FINE + 1)
+    q = np.empty(N_FINE + 1)
+    for r in range(total.shape[0]):
+        n = 0.0
+        for j in range(N_FINE + 1):
+            n += total[r, j]
+        if n < min_values or empty[r]:
+            continue
+        n_bins = int(min(max(n // VALUES_PER_BIN, 2.0), float(N_FINE)))
+        step = N_FINE / n_bins
+        lo = 0
+        for b in range(n_bins):  # bins of np.round(np.linspace(0, N_FINE, n_bins + 1))
+            if b + 1 < n_bins:
+                x = (b + 1) * step
+                f = np.floor(x)
+                d = x - f
+                hi = int(f + 1.0 if d > 0.5 or (d == 0.5 and f % 2.0 == 1.0) else f)
+            else:
+                hi = N_FINE
+            cs, qs = 0.0, 0.0
+            for j in range(lo, hi):
+                cs += total[r, j]
+                qs += mass[r, j]
+            c[b], q[b] = cs, qs
+            lo = hi
+        c[n_bins], q[n_bins] = total[r, N_FINE], mass[r, N_FINE]
+        n_used = 0
+        for b in range(n_bins + 1):
+            if c[b] > 0 or q[b] > 0:
+                n_used += 1
+        raw = 0.0
+        for b in range(n_bins + 1):
+            if c[b] > 0 or q[b] > 0:
+                qb = max(q[b], EPS)
+                pb = (c[b] + 0.5) / (n + 0.5 * n_used)
+                raw += (pb - qb) * np.log(pb / qb)
+        expected = (n_used - 1) * (1.0 / n + 1.0 / max(train_n[r], 1.0))
+        out[r] = max(raw - expected, 0.0) - spread[r]
 
 
 def explain(name: str, profile: QuantityProfile, values) -> str:
@@ -356,13 +388,8 @@ class DriftMonitor:
             self._values.popleft()
         scores = np.full(len(self._names), np.nan)
         if len(self._counts) >= self.min_frames:
-            n = self._total.sum(axis=1)
-            ok = (n >= self.min_values) & ~self._empty
-            for value in np.unique(n[ok]).tolist():
-                rows = np.flatnonzero(ok & (n == value))
-                # beyond what one training sequence already differs from the mix of all
-                scores[rows] = _psi_matrix(self._total[rows], self._mass[rows], value,
-                                           self._train_n[rows]) - self._spread[rows]
+            _window_scores(self._total, self._mass, self._train_n, self._spread, self._empty,
+                           float(self.min_values), scores)
         scored = np.flatnonzero(np.isfinite(scores))
         ranked = [(self._names[i], float(scores[i]))
                   for i in scored[np.argsort(-scores[scored], kind="stable")].tolist()]

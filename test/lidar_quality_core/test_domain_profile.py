@@ -221,3 +221,38 @@ def test_monitor_reads_groups_of_matrices_as_their_columns():
             r2.score, r2.level, r2.drifted, r2.text, r2.frames, r2.scored)
         assert r2.scored == 3
 
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_window_scores_are_psi_counts_of_each_row(seed):
+    """The compiled window scoring against psi_counts, row by row: every bin count from 2
+    to N_FINE (n_bins 8 puts linspace on .5 and rounds half to even), empty profiles,
+    too few values, missing values."""
+    from lidar_quality_core.domain_profile import (N_FINE, VALUES_PER_BIN, _fine_mass,
+                                                   _window_scores, psi_counts)
+
+    rng = np.random.default_rng(seed)
+    quantities = {f"q{k}": rng.gamma(1.0 + k % 5, 1.0, 500 + 100 * k) for k in range(24)}
+    quantities["q3"][:50] = np.nan
+    prof = DomainProfile.of(quantities, {k: np.repeat(np.arange(5), len(v) // 5 + 1)[:len(v)]
+                                         for k, v in quantities.items()})
+    qs = list(prof.quantities.values())
+    mass = np.array([_fine_mass(q) for q in qs])
+    train_n = np.array([q.count for q in qs], float)
+    spread = np.array([q.spread for q in qs], float)
+    empty = train_n == 0
+    empty[5] = True
+    n_values = [VALUES_PER_BIN * b + int(rng.integers(0, VALUES_PER_BIN))
+                for b in range(2, N_FINE + 1)] + [3, 200, 1000, 7]
+    total = np.zeros((len(qs), N_FINE + 1))
+    for r, n in enumerate(n_values[:len(qs)]):
+        total[r] = rng.multinomial(n, np.r_[np.full(N_FINE, 0.9 / N_FINE), 0.1])
+    out = np.full(len(qs), np.nan)
+    _window_scores(total, mass, train_n, spread, empty, 10.0, out)
+    for r, q in enumerate(qs):
+        n = total[r].sum()
+        if n < 10 or empty[r]:
+            assert np.isnan(out[r])
+        else:
+            assert out[r] == pytest.approx(psi_counts(q, total[r], mass[r]) - q.spread,
+                                           rel=1e-12, abs=1e-14), r
