@@ -12,7 +12,8 @@ against 4.3 ms), so :mod:`model_store` takes this walk only up to ``MAX_ROWS``.
 What it evaluates exactly as xgboost does: the gbtree booster, numerical splits (a row
 goes left when ``float32(x) < split_condition``, a missing value (NaN) the way the node's
 ``default_left`` says), the margin summed in float32 from the base margin in tree order,
-then the objective's link (``binary:logistic``: sigmoid, ``reg:squarederror``: identity).
+then the objective's link (``binary:logistic`` and ``reg:logistic``: sigmoid,
+``reg:squarederror``: identity).
 Anything else (other objectives, categorical splits, several targets or classes, a
 ``missing`` value other than NaN, an early-stopping best iteration, trees deeper than
 ``MAX_DEPTH``) is not packed: :func:`pack` says why and the caller keeps xgboost.
