@@ -3,7 +3,8 @@ frames, latency from publication to reception, drops, largest sustained rate.
 
 One experiment (``lidar_quality_tools.load_test``: the installed node executables with
 their installed config, pre-serialized synthetic frames published raw over the loopback
-Fast DDS profile, outputs matched by stamp in the publishing process), run once by
+Fast DDS profile, outputs received by a recorder process of their own and matched by
+stamp: ``lidar_quality_tools.output_recorder`` says why not in the publishing process), run once by
 ``bench/run.py`` (item kind ``"figures"``):
 
 1. lmd_node, lms_node and mimo_node at once, 10 Hz, ``DURATION`` = 60 s measured after a

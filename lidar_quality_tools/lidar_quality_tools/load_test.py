@@ -20,8 +20,8 @@ measures per node:
   stamp: outputs copy the input header), ``dropped`` = published frames without output;
 * latency: from the start of the publication of the frame's inputs for that node (the
   ``publish`` call of its first input, taken when it is really made, not the scheduled
-  tick) to the reception of its output in this process (raw subscription, no
-  deserialization);
+  tick) to the reception of its output by ``output_recorder``, a process of its own (raw
+  subscription, no deserialization; not this one: a large publish here holds the GIL);
 * resident memory (``VmRSS``) and CPU time of the node process, sampled every second,
   growth after a warm-up (:func:`memory_growth`);
 * the node's own counters from ``/diagnostics`` (frames out, drops by reason,
@@ -37,6 +37,7 @@ import importlib
 import os
 import signal
 import subprocess
+import sys
 import threading
 import time
 from dataclasses import dataclass, field
@@ -45,6 +46,8 @@ from typing import Callable, Sequence
 
 import numpy as np
 from lidar_quality_core.time_sync import HEADER_STAMP, stamp_of_bytes
+
+from .output_recorder import parse_line
 
 #: node -> (package, main output topic (relative) whose messages count as "received")
 NODES = {"lmd": ("lmd_ros", "output/detections"),
@@ -151,8 +154,10 @@ class OutputLog:
         self._lock = threading.Lock()
 
     def __call__(self, data: bytes) -> None:
-        now = time.monotonic()
-        key = stamp_of_bytes(data)
+        self.record(stamp_of_bytes(data), time.monotonic())
+
+    def record(self, key: int, now: float) -> None:
+        """An output of stamp ``key`` received at ``now`` (``time.monotonic()``)."""
         with self._lock:
             if key in self.received:
                 self.duplicates += 1
@@ -225,7 +230,6 @@ class _Node:
     specs: list = field(default_factory=list)
     frames: list = field(default_factory=list)   # [[(publisher, bytearray)] per frame]
     output: OutputLog = field(default_factory=OutputLog)
-    subscription: object = None
 
 
 class LoadTest:
@@ -294,7 +298,7 @@ class LoadTest:
             for node in self.nodes.values():
                 node.specs = self._wait_for_inputs(node, deadline)
             self._build_frames()
-            types = {}
+            types, outputs = {}, []
             for node in self.nodes.values():
                 topic = f"/{node.name}/{NODES[node.name][1]}"
                 while topic not in types:
@@ -303,8 +307,8 @@ class LoadTest:
                         raise RuntimeError(f"{node.name}_node does not publish {topic}")
                     time.sleep(0.2)
                     types = dict(ros.node.get_topic_names_and_types())
-                node.subscription = ros.node.create_subscription(
-                    _message_class(types[topic][0]), topic, node.output, output_qos(50), raw=True)
+                outputs += [node.name, topic, types[topic][0]]
+            self._start_recorder(outputs)
             self.diagnostics = DiagnosticsLog()
             self._diag_sub = ros.node.create_subscription(DiagnosticArray, "/diagnostics",
                                                           self.diagnostics, output_qos(50))
@@ -312,14 +316,37 @@ class LoadTest:
                 for pub, _ in node.frames[0]:
                     if not ros.wait_for_match(pub, timeout=30.0):
                         raise RuntimeError(f"{node.name}_node does not subscribe to {pub.topic_name}")
-                if not ros.wait_for_match(node.subscription, timeout=30.0):
-                    raise RuntimeError(f"no match with {node.name}_node's output")
+                if not self._matched[node.name].wait(timeout=30.0):
+                    raise RuntimeError(f"no match with {node.name}_node's output (recorder "
+                                       f"log: {self.out_dir / (self.log_prefix + 'recorder.log')})")
             self._preroll()
             gc.collect()
             gc.freeze()  # set-up objects out of the collector's way while publishing
         except BaseException:
             self.close()
             raise
+
+    def _start_recorder(self, outputs: list[str]) -> None:
+        """The nodes' outputs are received by ``output_recorder`` in a process of its own
+        (its module doc says why), its lines read here into each node's ``OutputLog``."""
+        log = open(self.out_dir / f"{self.log_prefix}recorder.log", "w")
+        self._recorder = self.ros.spawn(
+            [sys.executable, "-m", "lidar_quality_tools.output_recorder", *outputs],
+            stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log)
+        log.close()  # the child keeps its own descriptor
+        self._matched = {n: threading.Event() for n in self.nodes}
+        self._recorder_reader = threading.Thread(target=self._read_recorder, daemon=True)
+        self._recorder_reader.start()
+
+    def _read_recorder(self) -> None:
+        for line in self._recorder.stdout:
+            got = parse_line(line.decode(errors="replace"))
+            if got is None:
+                continue
+            if got[0] == "r":
+                self.nodes[got[1]].output.record(got[2], got[3])
+            else:
+                self._matched[got[1]].set()
 
     def _check_alive(self, node: _Node) -> None:
         if node.proc.poll() is not None:
@@ -572,6 +599,15 @@ class LoadTest:
                 node.proc.kill()
                 node.proc.wait()
                 self.exit_codes[n] = f"killed after {timeout:.0f} s"
+        recorder = getattr(self, "_recorder", None)
+        if recorder is not None and recorder.poll() is None:
+            recorder.send_signal(signal.SIGINT)
+            try:
+                recorder.wait(timeout=timeout)
+            except subprocess.TimeoutExpired:
+                recorder.kill()
+                recorder.wait()
+            self._recorder_reader.join(timeout=5.0)
         ros, self.ros = self.ros, None
         ros.close()
         return self.exit_codes

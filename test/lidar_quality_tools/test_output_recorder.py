@@ -1,0 +1,61 @@
+"""lidar_quality_tools.output_recorder: the load test's receiving process. Over real DDS
+it says when a topic is matched, writes every message's stamp with its reception time on
+the system's monotonic clock, and exits on SIGINT or when its stdin closes."""
+import signal
+import subprocess
+import sys
+import threading
+import time
+
+import pytest
+from lidar_quality_tools import fuzz
+from lidar_quality_tools.fuzz import DETECTIONS, FrameTemplate, InputSpec
+from lidar_quality_tools.output_recorder import parse_line
+from lidar_quality_ros.qos import output_qos
+from vision_msgs.msg import Detection3DArray
+
+
+def test_parse_line():
+    assert parse_line("r lmd 1500000000 12.25\n") == ("r", "lmd", 1500000000, 12.25)
+    assert parse_line("m mimo\n") == ("m", "mimo")
+    assert parse_line("garbage") is None and parse_line("") is None
+
+
+def _lines(proc, into: list):
+    for raw in proc.stdout:
+        into.append(parse_line(raw.decode()))
+
+
+@pytest.mark.parametrize("stop", ["sigint", "stdin"])
+def test_recorder_process_reports_match_and_stamps(ros, stop):
+    pub = ros.publisher(Detection3DArray, "out/detections", output_qos(10))
+    proc = ros.spawn([sys.executable, "-m", "lidar_quality_tools.output_recorder",
+                      "lmd", "/out/detections", "vision_msgs/msg/Detection3DArray"],
+                     stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+    got: list = []
+    reader = threading.Thread(target=_lines, args=(proc, got), daemon=True)
+    reader.start()
+    deadline = time.monotonic() + 60.0
+    while ("m", "lmd") not in got and time.monotonic() < deadline:
+        assert proc.poll() is None
+        time.sleep(0.05)
+    assert ("m", "lmd") in got
+    data = FrameTemplate([InputSpec("in", DETECTIONS)], n_points=100, n_objects=2,
+                         n_proposals=2).serialized("in")
+    t_sent = {}
+    for sec in (7, 8, 9):
+        t_sent[sec * 10**9] = time.monotonic()
+        pub.publish(fuzz.restamp_bytes(data, sec * 10**9))
+    while len([g for g in got if g and g[0] == "r"]) < 3 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    records = [g for g in got if g and g[0] == "r"]
+    assert [(r[1], r[2]) for r in records] == [("lmd", s) for s in sorted(t_sent)]
+    # the reception time is on this process's monotonic clock: after the publication
+    for _, _, stamp, t in records:
+        assert t_sent[stamp] <= t < t_sent[stamp] + 30.0
+    if stop == "sigint":
+        proc.send_signal(signal.SIGINT)
+    else:
+        proc.stdin.close()
+    assert proc.wait(timeout=30.0) == 0
+    reader.join(timeout=5.0)
