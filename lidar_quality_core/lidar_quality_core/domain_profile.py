@@ -327,7 +327,7 @@ class DriftMonitor:
 
     def __init__(self, profile: DomainProfile, *, window: int = 50, warn: float = 0.25,
                  error: float = 0.5, top: int = 3, min_values: int = 30,
-                 min_frames: int = 10, text_every: int = 10):
+                 min_frames: int = 10):
         if window < 1:
             raise ValueError("window must be at least 1 frame")
         if not 0 <= warn <= error:
@@ -337,12 +337,6 @@ class DriftMonitor:
         self.min_values = min_values
         #: frames before any score: a frame or two of one scene tell little
         self.min_frames = min(min_frames, window)
-        #: the words (live medians over the window) are refreshed every ``text_every``
-        #: frames, and at once when the drifted quantities change: they feed a log line
-        #: throttled to seconds and /diagnostics at 1 Hz, while the medians cost about a
-        #: tenth of a mimo_node frame (a drifted stream words every frame)
-        self.text_every = max(1, int(text_every))
-        self._text: tuple = ((), "", 0)      # (drifted names, words, frames since)
         self._names = list(profile.quantities)
         qs = [profile.quantities[k] for k in self._names]
         self._index = {k: i for i, k in enumerate(self._names)}
@@ -402,19 +396,9 @@ class DriftMonitor:
         score = ranked[0][1] if ranked else 0.0
         level = ERROR if score >= self.error else WARN if score >= self.warn else OK
         drifted = [(k, round(v, 4)) for k, v in ranked[:self.top] if v >= self.warn]
-        text = self._words(tuple(k for k, _ in drifted))
+        text = "; ".join(explain(k, self.profile.quantities[k], np.concatenate(
+            [f[k] for f in self._values if k in f])) for k, _ in drifted)
         return DriftReport(float(score), level, drifted, text, len(self._counts), len(scored))
-
-
-    def _words(self, names: tuple) -> str:
-        """The drifted quantities ``names`` in words (:func:`explain`), reused for up to
-        ``text_every`` frames while the same quantities drift."""
-        last, text, age = self._text
-        if names != last or age + 1 >= self.text_every:
-            text, age = "; ".join(explain(k, self.profile.quantities[k], np.concatenate(
-                [f[k] for f in self._values if k in f])) for k in names), -1
-        self._text = (names, text, age + 1)
-        return text
 
 
 # ------------------------------------------------------------------ in the nodes
