@@ -14,13 +14,13 @@ Figures (ms, p50 / p99):
 * ``mimo.node_frame_ms``: K = 2 x 100 boxes: the heads' and variances' bytes decoded as
   the node's raw subscriptions do (``detection_cdr``, ``box_variance_cdr``),
   ``pipeline.process_frame`` (merge, features, meta models; detections encoded to bytes
-  as the node publishes them, ``detection_cdr.encode_detections``) and the uncertainty
-  message serialized as ``publish`` does (goal p99 <= 10 ms); ``mimo.node_frame_k4_ms``:
+  as the node publishes them, ``detection_cdr.encode_detections``, and the uncertainty
+  message, ``cluster_uncertainty_cdr``) (goal p99 <= 10 ms); ``mimo.node_frame_k4_ms``:
   the same for K = 4 x 100;
 * medians of the parts for K = 2: ``mimo.node_decode_ms`` (bytes to ``HeadDetections``
   of all heads, variances included), ``mimo.node_merge_ms`` (``merge_heads`` +
   features), ``mimo.node_predict_ms`` (``MetaModels.predict``), ``mimo.node_messages_ms``
-  (``output_messages`` with the detections as bytes, the uncertainty message serialized),
+  (``output_messages`` with both messages as bytes, as the node publishes them),
   ``mimo.node_objects_ms`` (the same as message objects, both serialized: what encoding
   the bytes directly saves), and
   ``mimo.node_markers_ms`` (``box_markers``: built only while output/markers has a
@@ -75,14 +75,14 @@ def _node_frame(data, settings, models):
     """Bytes in, bytes out: one frame of the node (module docstring)."""
     from lidar_quality_core.box_variance_cdr import decode_box_variance_array
     from lidar_quality_core.detection_cdr import decode_detection_array
-    from rclpy.serialization import serialize_message
 
     from mimo_ros.pipeline import process_frame
 
     heads = [decode_detection_array(b) for b in data[0]]
     variances = [decode_box_variance_array(b) for b in data[1]]
-    out = process_frame(heads[0].header, heads, variances, settings, models, serialized=True)
-    return out.detections, serialize_message(out.uncertainty)
+    out = process_frame(heads[0].header, heads, variances, settings, models, serialized=True,
+                        serialized_uncertainty=True)
+    return out.detections, out.uncertainty
 
 
 def _models(settings, frames):
@@ -140,7 +140,8 @@ def figures():
             yield "mimo.node_predict_ms", _cycle(lambda fr: m.predict(fr.features), done)
             preds = [(f[0], fr, *m.predict(fr.features)) for f, fr in zip(frames, done)]
             yield "mimo.node_messages_ms", _cycle(
-                lambda p: serialize_message(output_messages(*p, serialized=True)[1]), preds)
+                lambda p: output_messages(*p, serialized=True, serialized_uncertainty=True),
+                preds)
             yield "mimo.node_objects_ms", _cycle(
                 lambda p: [serialize_message(x) for x in output_messages(*p)], preds)
             yield "mimo.node_markers_ms", _cycle(

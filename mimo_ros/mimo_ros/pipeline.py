@@ -56,6 +56,7 @@ from lidar_quality_core.autoware_objects import (AutowareOutput, class_map_param
                                                  objects_from_boxes)
 from lidar_quality_core.box_geometry import as_boxes, inbox_point_stats
 from lidar_quality_core.box_variance_cdr import DecodedVariances
+from lidar_quality_core.cluster_uncertainty_cdr import encode_cluster_uncertainty_array
 from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
                                       detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
@@ -505,7 +506,7 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
                     scores: str = "confidence", confidence_model_id: str = "",
                     iou_model_id: str = "", serialized: bool = False,
                     autoware: AutowareOutput | None = None, kept=None,
-                    drift: DomainVerdict | None = None):
+                    drift: DomainVerdict | None = None, serialized_uncertainty: bool = False):
     """``(Detection3DArray, ClusterUncertaintyArray)`` of the merged detections; with
     ``serialized`` the detections as CDR bytes (``detection_cdr.encode_detections``, the
     same message; a publisher takes them as they are, ~5x cheaper than building and
@@ -528,6 +529,8 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
     uncertainty message lists every merged detection (``detection_index`` = its index among
     them, ``detection_id`` = the published detection's id) and carries the message version
     and the drift check's verdict (``drift``; None: not checked, drift_level DRIFT_OFF).
+    ``serialized_uncertainty``: that message as CDR bytes
+    (``cluster_uncertainty_cdr``, the same message).
     """
     from lidar_quality_msgs.msg import ClusterUncertainty, ClusterUncertaintyArray
 
@@ -567,15 +570,21 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
                                     ids=ids_r,
                                     class_scores={n: fg_r[:, c] for c, n in enumerate(names)},
                                     covariance_diagonal=cov_r)
+    verdict = (drift or DomainVerdict({})).message_fields(ClusterUncertaintyArray)
+    if serialized_uncertainty:
+        figures = np.column_stack([st.shannon_entropy, st.aleatoric_entropy,
+                                   st.mutual_information, st.epistemic_total_variance,
+                                   st.aleatoric_total_variance, conf, iou])
+        return dets, encode_cluster_uncertainty_array(
+            header, confidence_model_id, iou_model_id, ids, labels, st.cluster_size,
+            figures, **verdict)
     size = st.cluster_size.tolist()
     se, ae, mi = (st.shannon_entropy.tolist(), st.aleatoric_entropy.tolist(),
                   st.mutual_information.tolist())
     etv, atv = st.epistemic_total_variance.tolist(), st.aleatoric_total_variance.tolist()
     cl, il = conf.tolist(), iou.tolist()
     unc = ClusterUncertaintyArray(header=header, confidence_model_id=confidence_model_id,
-                                  iou_model_id=iou_model_id,
-                                  **(drift or DomainVerdict({})).message_fields(
-                                      ClusterUncertaintyArray))
+                                  iou_model_id=iou_model_id, **verdict)
     unc.clusters = [ClusterUncertainty(detection_index=i, detection_id=ids[i],
                                        class_id=labels[i], cluster_size=size[i],
                                        shannon_entropy=se[i], aleatoric_entropy=ae[i],
@@ -593,11 +602,13 @@ def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, mode
                   intensity: IntensityScale | None = None,
                   autoware: AutowareOutput | None = None,
                   thresholds: ConfidenceThresholds | None = None,
-                  domain: DomainCheck | None = None) -> MimoOutput:
+                  domain: DomainCheck | None = None,
+                  serialized_uncertainty: bool = False) -> MimoOutput:
     """The node's work for one frame, decode to output messages: ``frame_features``,
     ``models.predict`` (a ``MetaModels``), the drift check (``domain``; its ``passthrough``
     puts the merged scores in place of the confidences), ``thresholds`` (what is
-    published), ``output_messages`` (``serialized``: the detections as bytes)."""
+    published), ``output_messages`` (``serialized``: the detections as bytes;
+    ``serialized_uncertainty``: the uncertainty message as bytes)."""
     frame = frame_features(head_msgs, variance_msgs, settings, cloud_msg,
                            transforms=transforms, intensity=intensity)
     conf, iou = models.predict(frame.features)
@@ -611,7 +622,8 @@ def process_frame(header, head_msgs, variance_msgs, settings: MimoSettings, mode
     dets, unc = output_messages(header, frame, conf, iou, scores=scores,
                                 confidence_model_id=models.confidence_model_id,
                                 iou_model_id=models.iou_model_id, serialized=serialized,
-                                autoware=autoware, kept=kept, drift=verdict)
+                                autoware=autoware, kept=kept, drift=verdict,
+                                serialized_uncertainty=serialized_uncertainty)
     n_fallback = None
     if autoware is not None:
         (dets, n_fallback) = dets
@@ -687,6 +699,9 @@ class MimoProcessor:
         self.thresholds = thresholds
         #: live inputs against the models' training data (``domain_profile``)
         self.domain = DomainCheck(getattr(models, "domain_profile", None), drift)
+        #: output/uncertainty as CDR bytes (the node, which only publishes it), not a
+        #: message object (``process_bag`` reads its fields)
+        self.serialized_uncertainty = False
         self.new_stream()
 
     def new_stream(self) -> None:
@@ -734,7 +749,8 @@ class MimoProcessor:
         out = process_frame(header, list(heads), variances, s, self.models, cloud_msg=xyz,
                             scores=self.scores, serialized=True, transforms=moved,
                             intensity=self.intensity, autoware=self.autoware,
-                            thresholds=self.thresholds, domain=self.domain)
+                            thresholds=self.thresholds, domain=self.domain,
+                            serialized_uncertainty=self.serialized_uncertainty)
         if out.frame.issues:
             issues["heads"] = "; ".join(out.frame.issues)
         mk = None

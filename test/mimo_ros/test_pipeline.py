@@ -352,6 +352,20 @@ def test_process_frame_outputs(models):
         for d in dets.detections]
     np.testing.assert_array_equal(back.detections[0].results[1].pose.covariance,
                                   dets.detections[0].results[1].pose.covariance)
+    # so is the node's serialized uncertainty message (NaN ATV without variances: NaN-equal)
+    from lidar_quality_msgs.msg import ClusterUncertainty, ClusterUncertaintyArray
+    for var in (variances, None):
+        msg = process_frame(h, heads, var, s, models).uncertainty
+        raw = process_frame(h, heads, var, s, models, serialized_uncertainty=True).uncertainty
+        back = deserialize_message(raw, ClusterUncertaintyArray)
+        assert back.header == msg.header and len(back.clusters) == len(msg.clusters) > 0
+        for k in ("confidence_model_id", "iou_model_id", "version", "drift_level",
+                  "drift_window_frames", "drift_quantities", "passthrough"):
+            assert getattr(back, k) == getattr(msg, k), k
+        fields = list(ClusterUncertainty.get_fields_and_field_types())
+        for a, b in zip(back.clusters, msg.clusters):
+            for k in fields:
+                np.testing.assert_array_equal(getattr(a, k), getattr(b, k), err_msg=k)
     # unscaled scores on request
     dets2, _ = output_messages(h, f, conf, iou, scores="merged")
     assert dets2.detections[0].results[0].hypothesis.score == pytest.approx(f.merge.scores[0])

@@ -1,0 +1,71 @@
+"""lidar_quality_msgs/ClusterUncertaintyArray written as its serialized (CDR) bytes.
+
+Why: mimo_node publishes one entry per merged detection, every frame. Building the
+entries as Python messages and having rclpy convert them for publishing cost about a
+tenth of a MIMO frame; written here from the frame's arrays it is one loop over the
+clusters (a few dozen) with the seven float64 figures of all of them packed at once. The
+bytes are what rclpy serializes for the same message (padding bytes aside;
+``test_cluster_uncertainty_cdr`` compares them).
+
+Layout (plain little-endian CDR, ``00 01``; each primitive aligned to its size relative
+to the end of the 4-byte encapsulation header): header (stamp, frame_id), the two model
+ids, the clusters (uint32 detection_index, string detection_id, string class_id, uint32
+cluster_size, then seven float64: shannon_entropy, aleatoric_entropy,
+mutual_information, epistemic_total_variance, aleatoric_total_variance, confidence,
+predicted_iou), then the version-1 fields (uint8 version, uint8 drift_level, float32
+drift_score, uint32 drift_window_frames, string drift_quantities, bool passthrough).
+No rclpy.
+"""
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+__all__ = ["encode_cluster_uncertainty_array"]
+
+_U32 = struct.Struct("<I")
+_PAD = b"\0" * 8
+
+
+def _string(text: str) -> bytes:
+    b = text.encode("utf-8") + b"\0"
+    return _U32.pack(len(b)) + b
+
+
+def encode_cluster_uncertainty_array(header, confidence_model_id: str, iou_model_id: str,
+                                     detection_ids, class_ids, cluster_size, figures, *,
+                                     version: int, drift_level: int, drift_score: float,
+                                     drift_window_frames: int, drift_quantities: str,
+                                     passthrough: bool) -> bytes:
+    """Serialized ClusterUncertaintyArray: cluster ``i`` has ``detection_index = i``,
+    ``detection_ids[i]``, ``class_ids[i]``, ``cluster_size[i]`` and row ``i`` of
+    ``figures`` (C, 7): Shannon entropy, aleatoric entropy, mutual information, ETV, ATV,
+    confidence, predicted IoU; the keyword fields as in ``DomainVerdict.message_fields``."""
+    sizes = np.asarray(cluster_size, dtype=np.int64).reshape(-1).tolist()
+    n = len(sizes)
+    values = np.asarray(figures, dtype="<f8").reshape(n, 7).tobytes()
+    out = bytearray(b"\x00\x01\x00\x00")
+    out += struct.pack("<iI", header.stamp.sec, header.stamp.nanosec)
+    out += _string(header.frame_id)
+    for text in (confidence_model_id, iou_model_id):
+        out += _PAD[:-(len(out) - 4) % 4]
+        out += _string(text)
+    out += _PAD[:-(len(out) - 4) % 4]
+    out += _U32.pack(n)
+    for i, (did, cid, size) in enumerate(zip(detection_ids, class_ids, sizes)):
+        out += _PAD[:-(len(out) - 4) % 4]
+        out += _U32.pack(i)
+        out += _string(str(did))
+        out += _PAD[:-(len(out) - 4) % 4]
+        out += _string(str(cid))
+        out += _PAD[:-(len(out) - 4) % 4]
+        out += _U32.pack(size)
+        out += _PAD[:-(len(out) - 4) % 8]
+        out += values[56 * i:56 * (i + 1)]
+    out += struct.pack("<BB", version, drift_level)
+    out += _PAD[:-(len(out) - 4) % 4]
+    out += struct.pack("<fI", drift_score, drift_window_frames)
+    out += _string(drift_quantities)
+    out += struct.pack("<?", passthrough)
+    return bytes(out)
