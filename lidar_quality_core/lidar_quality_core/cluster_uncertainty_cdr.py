@@ -18,19 +18,12 @@ No rclpy.
 """
 from __future__ import annotations
 
-import struct
 
 import numpy as np
 
+from .quality_array_cdr import U32, append_version_fields, array_head, cdr_string, pad
+
 __all__ = ["encode_cluster_uncertainty_array"]
-
-_U32 = struct.Struct("<I")
-_PAD = b"\0" * 8
-
-
-def _string(text: str) -> bytes:
-    b = text.encode("utf-8") + b"\0"
-    return _U32.pack(len(b)) + b
 
 
 def encode_cluster_uncertainty_array(header, confidence_model_id: str, iou_model_id: str,
@@ -45,27 +38,18 @@ def encode_cluster_uncertainty_array(header, confidence_model_id: str, iou_model
     sizes = np.asarray(cluster_size, dtype=np.int64).reshape(-1).tolist()
     n = len(sizes)
     values = np.asarray(figures, dtype="<f8").reshape(n, 7).tobytes()
-    out = bytearray(b"\x00\x01\x00\x00")
-    out += struct.pack("<iI", header.stamp.sec, header.stamp.nanosec)
-    out += _string(header.frame_id)
-    for text in (confidence_model_id, iou_model_id):
-        out += _PAD[:-(len(out) - 4) % 4]
-        out += _string(text)
-    out += _PAD[:-(len(out) - 4) % 4]
-    out += _U32.pack(n)
+    out = array_head(header, confidence_model_id, iou_model_id, n)
     for i, (did, cid, size) in enumerate(zip(detection_ids, class_ids, sizes)):
-        out += _PAD[:-(len(out) - 4) % 4]
-        out += _U32.pack(i)
-        out += _string(str(did))
-        out += _PAD[:-(len(out) - 4) % 4]
-        out += _string(str(cid))
-        out += _PAD[:-(len(out) - 4) % 4]
-        out += _U32.pack(size)
-        out += _PAD[:-(len(out) - 4) % 8]
+        pad(out, 4)
+        out += U32.pack(i)
+        out += cdr_string(str(did))
+        pad(out, 4)
+        out += cdr_string(str(cid))
+        pad(out, 4)
+        out += U32.pack(size)
+        pad(out, 8)
         out += values[56 * i:56 * (i + 1)]
-    out += struct.pack("<BB", version, drift_level)
-    out += _PAD[:-(len(out) - 4) % 4]
-    out += struct.pack("<fI", drift_score, drift_window_frames)
-    out += _string(drift_quantities)
-    out += struct.pack("<?", passthrough)
-    return bytes(out)
+    return append_version_fields(
+        out, version=version, drift_level=drift_level, drift_score=drift_score,
+        drift_window_frames=drift_window_frames, drift_quantities=drift_quantities,
+        passthrough=passthrough)

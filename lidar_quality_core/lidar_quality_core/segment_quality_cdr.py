@@ -17,22 +17,11 @@ on one and has a size that depends on its class name only. No rclpy.
 """
 from __future__ import annotations
 
-import struct
-
 import numpy as np
 
+from .quality_array_cdr import append_version_fields, array_head, cdr_string
+
 __all__ = ["encode_segment_quality_array"]
-
-_U32 = struct.Struct("<I")
-
-
-def _string(text: str) -> bytes:
-    b = text.encode("utf-8") + b"\0"
-    return _U32.pack(len(b)) + b
-
-
-def _pad(buf: bytearray, align: int) -> None:
-    buf += b"\0" * (-(len(buf) - 4) % align)
 
 
 def encode_segment_quality_array(header, confidence_model_id: str, iou_model_id: str,
@@ -47,17 +36,10 @@ def encode_segment_quality_array(header, confidence_model_id: str, iou_model_id:
     ``DomainVerdict.message_fields``."""
     cls = np.asarray(class_index, dtype=np.int64).reshape(-1)
     n = len(cls)
-    head = bytearray(b"\x00\x01\x00\x00")
-    head += struct.pack("<iI", header.stamp.sec, header.stamp.nanosec)
-    head += _string(header.frame_id)
-    for text in (confidence_model_id, iou_model_id):
-        _pad(head, 4)
-        head += _string(text)
-    _pad(head, 4)
-    head += _U32.pack(n)
+    head = array_head(header, confidence_model_id, iou_model_id, n)
     first = len(head)
     # per class: the name as CDR string words, and where point_count sits in the entry
-    names = [_string(c) for c in class_names]
+    names = [cdr_string(c) for c in class_names]
     name_words = [np.frombuffer(s + b"\0" * (-len(s) % 4), "<u4") for s in names]
     counts_at = np.array([8 + 4 * len(w) for w in name_words], dtype=np.int64)
     # offsets from the entry's start; the float64 pair 8-aligned (relative to byte 4)
@@ -85,9 +67,7 @@ def encode_segment_quality_array(header, confidence_model_id: str, iou_model_id:
     words[dw[:, None] + np.arange(4)] = pair.reshape(n, 4)
     out = bytearray(words.tobytes()[:end])
     out[:first] = head
-    out += struct.pack("<BB", version, drift_level)
-    _pad(out, 4)
-    out += struct.pack("<fI", drift_score, drift_window_frames)
-    out += _string(drift_quantities)
-    out += struct.pack("<?", passthrough)
-    return bytes(out)
+    return append_version_fields(
+        out, version=version, drift_level=drift_level, drift_score=drift_score,
+        drift_window_frames=drift_window_frames, drift_quantities=drift_quantities,
+        passthrough=passthrough)

@@ -33,7 +33,6 @@ measures per node:
 from __future__ import annotations
 
 import gc
-import importlib
 import os
 import signal
 import subprocess
@@ -189,12 +188,6 @@ class DiagnosticsLog:
     def values(self, node: str) -> dict[str, str]:
         with self._lock:
             return dict(self.latest.get(f"{node}_node", {}))
-
-
-def _message_class(type_name: str):
-    """Message class of a ROS type name ``pkg/msg/Name``."""
-    pkg, _, name = type_name.split("/")
-    return getattr(importlib.import_module(f"{pkg}.msg"), name)
 
 
 def node_command(name: str, *, params: dict | None = None, remaps: dict | None = None,

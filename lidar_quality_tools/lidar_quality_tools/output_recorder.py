@@ -25,6 +25,7 @@ import time
 
 
 def _message_class(type_name: str):
+    """Message class of a ROS type name ``pkg/msg/Name``."""
     pkg, _, name = type_name.split("/")
     return getattr(importlib.import_module(f"{pkg}.msg"), name)
 

@@ -92,9 +92,10 @@ class MimoNode(QualityNode):
                                        thresholds=thresholds_from(p.min_confidence,
                                                                   p.class_min_confidence,
                                                                   p.range_min_confidence),
-                                       drift=p.drift)
-        # published as it is: bytes spare building and converting a message per cluster
-        self.processor.serialized_uncertainty = True
+                                       drift=p.drift,
+                                       # published as it is: bytes spare building and
+                                       # converting a message per cluster
+                                       serialized_uncertainty=True)
 
         K = self.settings.num_heads
         if self.autoware is not None:

@@ -685,7 +685,7 @@ class MimoProcessor:
                  transforms=None, transform_inputs: bool = True,
                  transform_tolerance: float = 0.05, autoware: AutowareOutput | None = None,
                  thresholds: ConfidenceThresholds | None = None,
-                 drift: DriftParameters | None = None):
+                 drift: DriftParameters | None = None, serialized_uncertainty: bool = False):
         settings.validate()
         if scores not in OUTPUT_SCORES:
             raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
@@ -701,7 +701,7 @@ class MimoProcessor:
         self.domain = DomainCheck(getattr(models, "domain_profile", None), drift)
         #: output/uncertainty as CDR bytes (the node, which only publishes it), not a
         #: message object (``process_bag`` reads its fields)
-        self.serialized_uncertainty = False
+        self.serialized_uncertainty = bool(serialized_uncertainty)
         self.new_stream()
 
     def new_stream(self) -> None:
