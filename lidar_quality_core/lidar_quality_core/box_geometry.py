@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+from numba import njit
 
 __all__ = ["as_boxes", "bev_corners", "corners_3d", "points_in_boxes",
            "count_points_in_boxes", "segment_stats", "SegmentStats", "as_cloud",
@@ -23,8 +24,6 @@ _MAX_CELLS = 1 << 18          # cells in the dense cell table
 _MAX_CELLS_PER_AXIS = 2048
 _MAX_CELL_ENTRIES = 1 << 21   # (box, cell) incidences before the grid is coarsened
 _BIG_BOX_CELLS = 96           # boxes wider than this many cells are tested brute force
-_PAIR_CHUNK = 1 << 15         # candidate (point, box) pairs processed at once
-_POINT_BLOCK = 1 << 16
 _CELL_FACTOR = 0.25           # cell size relative to the median box BEV footprint
 
 
@@ -96,27 +95,6 @@ class _BoxTable(NamedTuple):
 
     def take(self, idx):
         return _BoxTable(*(np.take(a, idx) for a in self))
-
-
-class _ComplexTable(NamedTuple):
-    centre: np.ndarray  # x + iy
-    rot: np.ndarray     # exp(-i yaw) = cos - i sin
-    half: np.ndarray    # l/2 + i w/2 (with margin)
-    cz: np.ndarray
-    hh: np.ndarray
-
-
-def _complex(re, im):
-    """``re + 1j * im`` without multiplying (inf * 1j would make NaN)."""
-    out = np.empty(len(re), dtype=np.complex128)
-    out.real = re
-    out.imag = im
-    return out
-
-
-def _complex_table(t: _BoxTable) -> _ComplexTable:
-    return _ComplexTable(_complex(t.cx, t.cy), _complex(t.c, -t.s), _complex(t.hl, t.hw),
-                         t.cz, t.hh)
 
 
 def _box_table(b: np.ndarray, margin: float):
@@ -240,75 +218,69 @@ def _grid_pairs(p, tab: _BoxTable, normal, cs, out_pt, out_bx):
     ent_box = ent[hit][order]
     cell_cnt = np.bincount(ent_cell, minlength=ncells)
     cell_start = np.cumsum(cell_cnt) - cell_cnt
-    touched = cell_cnt > 0
     cell_box = normal[ent_box]
-    ct = _complex_table(tab)
+    if p.dtype != ftype:
+        p = p.astype(ftype)
+    pt, bx = _grid_kernel(p[:, 0], p[:, 1], p[:, 2], ftype(x0), ftype(y0), ftype(inv), nx, ny,
+                          cell_start, cell_cnt, cell_box, tab.cx, tab.cy, tab.cz, tab.c,
+                          -tab.s, tab.hl, tab.hw, tab.hh)
+    out_pt.append(pt)
+    out_bx.append(bx)
 
-    x0f, y0f, invf = ftype(x0), ftype(y0), ftype(inv)
-    # Points in blocks and pairs in chunks: temporaries stay cache-resident and are recycled
-    # by the allocator (fresh multi-MB temporaries cost page faults that would dominate).
-    for p0 in range(0, len(p), _POINT_BLOCK):
-        pb = p[p0:p0 + _POINT_BLOCK]
-        with np.errstate(invalid="ignore", over="ignore"):
-            f = np.subtract(pb[:, 0], x0f, dtype=ftype)
-            f *= invf
-            # Clamp after the cast: NaN / inf / huge casts to some integer (platform
-            # dependent) that the clip sends into the grid; the exact test rejects them.
-            # int32 (the cell table is far below 2**31): half the memory traffic of intp
-            pcell = f.astype(np.int32)  # truncation == floor for every in-grid value (> 0)
-            np.clip(pcell, 0, nx - 1, out=pcell)
-            pcell *= ny
-            f = np.subtract(pb[:, 1], y0f, dtype=ftype)
-            f *= invf
-            iy = f.astype(np.int32)
-            np.clip(iy, 0, ny - 1, out=iy)
-            pcell += iy
-        cand = np.flatnonzero(np.take(touched, pcell))  # take: ~2x faster than fancy indexing
-        if not len(cand):
+
+_KERNEL_SIG = ("Tuple((int64[::1], int64[::1]))({f}[:], {f}[:], {f}[:], {f}, {f}, {f}, int64, "
+               "int64, int64[::1], int64[::1], int64[::1], float64[::1], float64[::1], "
+               "float64[::1], float64[::1], float64[::1], float64[::1], float64[::1], "
+               "float64[::1])")
+
+
+@njit([_KERNEL_SIG.format(f="float32"), _KERNEL_SIG.format(f="float64")], cache=True,
+      nogil=True)
+def _grid_kernel(px, py, pz, x0, y0, inv, nx, ny, cell_start, cell_cnt, cell_box,
+                 cx, cy, cz, c, ms, hl, hw, hh):
+    # One pass over the points: each point's cell (in the points' dtype, as the grid's
+    # slack assumes), then the exact test against the boxes listed there. Pairs come out
+    # point-major. The local coordinates are rounded exactly as in _exact (c dx + s dy,
+    # c dy - s dx): a point on a face gets the same verdict on both paths.
+    n = px.shape[0]
+    cap = max(1024, n // 4)
+    out_pt = np.empty(cap, np.int64)
+    out_bx = np.empty(cap, np.int64)
+    k = 0
+    for i in range(n):
+        fx = (px[i] - x0) * inv
+        fy = (py[i] - y0) * inv
+        # clamp before converting: NaN / inf / huge have no integer (the test rejects them)
+        ix = int(fx) if fx >= 0 and fx < nx - 1 else (nx - 1 if fx >= nx - 1 else 0)
+        iy = int(fy) if fy >= 0 and fy < ny - 1 else (ny - 1 if fy >= ny - 1 else 0)
+        cell = ix * ny + iy
+        m = cell_cnt[cell]
+        if m == 0:
             continue
-        ccell = np.take(pcell, cand)
-        cnt = np.take(cell_cnt, ccell)
-        start = np.take(cell_start, ccell)
-        cum = np.cumsum(cnt)
-        # float64 contiguous columns: mixed-dtype / strided ufunc loops are several x slower
-        px, py, pz = np.take(pb, cand, axis=0).T.astype(np.float64)
-        pc = _complex(px, py)
-        cuts = np.searchsorted(cum, np.arange(_PAIR_CHUNK, int(cum[-1]), _PAIR_CHUNK)).tolist()
-        for lo, hi in zip([0, *cuts], [*cuts, len(cand)]):
-            if hi > lo:
-                pi, bi = _chunk_pairs(lo, hi, cnt, start, cell_box, pc, pz, ct)
-                out_pt.append(np.take(cand, pi) + p0)
-                out_bx.append(bi)
-
-
-def _chunk_pairs(lo, hi, cnt, start, cell_box, pc, pz, ct: _ComplexTable):
-    """Exact test of candidates ``lo:hi`` against every box of their cell."""
-    cc = cnt[lo:hi]
-    first = np.cumsum(cc)
-    npair = int(first[-1])
-    first -= cc
-    pi = np.repeat(np.arange(lo, hi), cc)
-    pos = np.repeat(start[lo:hi] - first, cc)
-    pos += np.arange(npair)
-    bi = np.take(cell_box, pos)
-    # BEV first (it rejects most pairs), as one complex product per pair:
-    # (p - centre) * exp(-i yaw) = local x + i local y.
-    with np.errstate(invalid="ignore"):
-        d = np.take(pc, pi)
-        d -= np.take(ct.centre, bi)
-        d *= np.take(ct.rot, bi)
-        dv = d.view(np.float64)
-        np.abs(dv, out=dv)
-        m = (dv <= np.take(ct.half, bi).view(np.float64)).view(np.uint16) == 0x0101
-        sel = np.flatnonzero(m)
-        pi = np.take(pi, sel)
-        bi = np.take(bi, sel)
-        dz = np.take(pz, pi)
-        dz -= np.take(ct.cz, bi)
-        np.abs(dz, out=dz)
-        m = dz <= np.take(ct.hh, bi)
-    return pi[m], bi[m]
-
+        x, y, z = np.float64(px[i]), np.float64(py[i]), np.float64(pz[i])
+        s0 = cell_start[cell]
+        for q in range(s0, s0 + m):
+            b = cell_box[q]
+            dx = x - cx[b]
+            dy = y - cy[b]
+            if not abs(dx * c[b] - dy * ms[b]) <= hl[b]:
+                continue
+            if not abs(dx * ms[b] + dy * c[b]) <= hw[b]:
+                continue
+            if not abs(z - cz[b]) <= hh[b]:
+                continue
+            if k == cap:
+                cap *= 2
+                grown = np.empty(cap, np.int64)
+                grown[:k] = out_pt[:k]
+                out_pt = grown
+                grown = np.empty(cap, np.int64)
+                grown[:k] = out_bx[:k]
+                out_bx = grown
+            out_pt[k] = i
+            out_bx[k] = b
+            k += 1
+    return out_pt[:k].copy(), out_bx[:k].copy()
 
 def points_in_boxes(points, boxes, margin: float = 0.0):
     """CSR membership ``(offsets (N+1,), point_index int64)``: points of box ``b`` are

@@ -51,10 +51,12 @@ subscribes, calls the processor and publishes. The Detection3DArray inputs are t
 serialized bytes and decoded by ``lidar_quality_core.detection_cdr`` (rclpy's own
 deserialization of a reference-detector proposal array costs 100-300 ms, the whole LMD
 frame ~12 ms), and ``output/detections`` is published as bytes built from them (every
-field copied, scores replaced); little-endian CDR only (what ROS 2 writes on x86 / ARM),
-other bytes are dropped and counted (``undecodable_input``). A malformed cloud (or one without an
-intensity field) drops the frame (counted as ``malformed_cloud``); invalid boxes raise
-throttled warnings, the frame is processed.
+field copied, scores replaced), ``output/quality`` too
+(``lidar_quality_core.detection_quality_cdr``, the same message); little-endian CDR
+only (what ROS 2 writes on x86 / ARM), other bytes are dropped and counted
+(``undecodable_input``). A malformed cloud (or one without an intensity field) drops
+the frame (counted as ``malformed_cloud``); invalid boxes raise throttled warnings, the
+frame is processed.
 
 Frames: with ``transform_inputs`` (default) the node listens to ``/tf_static`` and ``/tf``
 (``lidar_quality_ros.tf_listener``, tf2's QoS) and the processor moves detections and
@@ -97,7 +99,10 @@ class LmdNode(QualityNode):
                                       thresholds=thresholds_from(p.min_confidence,
                                                                  p.class_min_confidence,
                                                                  p.range_min_confidence),
-                                      drift=p.drift)
+                                      drift=p.drift,
+                                      # published as it is: bytes spare building and
+                                      # converting a message per detection
+                                      serialized_quality=True)
 
         mode = p.settings.proposal_mode
         self.autoware = p.input_type == "autoware"

@@ -65,6 +65,7 @@ from lidar_quality_core.boxes import DetectionArrays, detections_to_arrays, tilt
 from lidar_quality_core.domain_profile import DomainCheck, DriftParameters
 from lidar_quality_core.detection_cdr import (DecodedDetections, encode_detection_array,
                                               rescaled_scores)
+from lidar_quality_core.detection_quality_cdr import encode_detection_quality_array
 from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
@@ -449,7 +450,7 @@ class LmdProcessor:
                  transforms=None, transform_inputs: bool = True,
                  transform_tolerance: float = 0.05, existence_fallback: float = -1.0,
                  thresholds: ConfidenceThresholds | None = None,
-                 drift: DriftParameters | None = None):
+                 drift: DriftParameters | None = None, serialized_quality: bool = False):
         settings.validate()
         if tuple(models.feature_names) != settings.feature_names():
             raise ValueError("models were loaded for another feature schema than the settings'")
@@ -463,6 +464,9 @@ class LmdProcessor:
         self.existence_fallback = float(existence_fallback)
         #: live inputs against the models' training data (``domain_profile``)
         self.domain = DomainCheck(getattr(models, "domain_profile", None), drift)
+        #: output/quality as CDR bytes (the node, which only publishes it), not a message
+        #: object (``process_bag`` reads its fields)
+        self.serialized_quality = bool(serialized_quality)
         self.new_stream()
         self.transforms, self.transform_inputs = transforms, bool(transform_inputs)
         #: for whoever builds the buffer (process_bag: one per bag)
@@ -532,15 +536,7 @@ class LmdProcessor:
                 h.score = v
             det_msg = self._DetArray(header=header, detections=[
                 m for m, k in zip(frame.messages, kept.tolist()) if k])
-        Q = self._Quality
-        quality = self._QualityArray(
-            header=header, confidence_model_id=self.models.confidence_model_id,
-            iou_model_id=self.models.iou_model_id,
-            detections=[Q(detection_index=i, detection_id=dets.ids[i], class_id=dets.labels[i],
-                          original_score=s, confidence=c, predicted_iou=u)
-                        for i, (s, c, u) in enumerate(zip(dets.scores.tolist(), conf.tolist(),
-                                                          iou.tolist()))],
-            **verdict.message_fields(self._QualityArray))
+        quality = self.quality_message(header, dets, conf, iou, verdict)
         mk = self.markers(frame, conf, iou, kept) if markers else None
         issues = dict(frame.issues)
         if not frame.valid.all():
@@ -560,6 +556,24 @@ class LmdProcessor:
                           {"intensity_scale": self.intensity.decided, **verdict.values},
                           frozenset({"domain_drift"}) if verdict.error else frozenset(),
                           fallback=fallback, removed=removed)
+
+    def quality_message(self, header, dets, conf, iou, verdict):
+        """output/quality: one entry per scored detection (``serialized_quality``: its CDR
+        bytes, ``detection_quality_cdr``, the same message)."""
+        fields = verdict.message_fields(self._QualityArray)
+        if self.serialized_quality:
+            return encode_detection_quality_array(
+                header, self.models.confidence_model_id, self.models.iou_model_id, dets.ids,
+                dets.labels, np.column_stack([dets.scores, conf, iou]), **fields)
+        Q = self._Quality
+        return self._QualityArray(
+            header=header, confidence_model_id=self.models.confidence_model_id,
+            iou_model_id=self.models.iou_model_id,
+            detections=[Q(detection_index=i, detection_id=dets.ids[i], class_id=dets.labels[i],
+                          original_score=s, confidence=c, predicted_iou=u)
+                        for i, (s, c, u) in enumerate(zip(dets.scores.tolist(), conf.tolist(),
+                                                          iou.tolist()))],
+            **fields)
 
     def markers(self, frame: LmdFrame, conf, iou, kept):
         """Boxes of the published detections coloured by confidence, labelled

@@ -248,7 +248,6 @@ def test_many_tiny_boxes_beyond_int16():
 
 
 @pytest.mark.parametrize("consts", [
-    dict(_PAIR_CHUNK=7, _POINT_BLOCK=97),
     dict(_MAX_CELL_ENTRIES=50, _MAX_CELLS=64, _MAX_CELLS_PER_AXIS=5),
     dict(_BIG_BOX_CELLS=2, _CELL_FACTOR=0.05),
     dict(_CELL_FACTOR=3.0),

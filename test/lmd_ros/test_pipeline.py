@@ -323,6 +323,20 @@ def test_processor_bytes_output_equals_message_output(mode, min_conf, tmp_path):
     dets.detections[1].results[0].hypothesis.class_id = "tram"
     got = proc.process(cloud, None if mode == "exact" else decoded(dets), decoded(props))
     assert isinstance(got.detections, bytes)
+    # the node's output/quality as bytes: the same message
+    as_bytes = LmdProcessor(s, models, min_confidence=min_conf, serialized_quality=True)
+    cloud, dets, props = frame_messages(f, 2)
+    dets.detections[1].results[0].hypothesis.class_id = "tram"
+    raw = as_bytes.process(cloud, None if mode == "exact" else decoded(dets),
+                           decoded(props)).quality
+    assert isinstance(raw, bytes)   # NaN != NaN: field by field
+    a, b = sent_quality(raw), sent_quality(got)
+    assert (a.header, a.confidence_model_id, a.iou_model_id, a.version, a.drift_level) == (
+        b.header, b.confidence_model_id, b.iou_model_id, b.version, b.drift_level)
+    for field in ("detection_index", "detection_id", "class_id", "original_score",
+                  "confidence", "predicted_iou"):
+        np.testing.assert_array_equal([getattr(e, field) for e in a.detections],
+                                      [getattr(e, field) for e in b.detections])
     out = deserialize_message(got.detections, Detection3DArray)
     ref = want.detections
     assert out.header == ref.header and len(out.detections) == len(ref.detections)
@@ -609,10 +623,13 @@ def shifted(f, factor):
 
 
 def sent_quality(out):
-    """``out.quality`` as a subscriber gets it: through rclpy's serialization."""
+    """``out.quality`` (or those bytes) as a subscriber gets it: through rclpy's
+    serialization, or the bytes as they are published."""
     from lidar_quality_msgs.msg import DetectionQualityArray
 
-    return deserialize_message(serialize_message(out.quality), DetectionQualityArray)
+    q = out if isinstance(out, bytes) else out.quality
+    return deserialize_message(q if isinstance(q, bytes) else serialize_message(q),
+                               DetectionQualityArray)
 
 
 def assert_drift_fields(q, out, level):
@@ -671,7 +688,7 @@ def test_drift_check_flags_frames_unlike_the_training_data(tmp_path):
     assert q.drift_window_frames == 4
 
     passthrough = LmdProcessor(settings, models, drift=DriftParameters(
-        drift_window=2, drift_action="passthrough"))
+        drift_window=2, drift_action="passthrough"), serialized_quality=True)  # as the node
     for k, f in enumerate(frames[4:]):
         cloud, dets, _ = frame_messages(shifted(f, 0.3), k + 5)
         out = passthrough.process(cloud, dets, None)

@@ -1,0 +1,48 @@
+"""detection_quality_cdr: the bytes are the message rclpy builds from the same values."""
+import numpy as np
+import pytest
+from lidar_quality_core.detection_quality_cdr import encode_detection_quality_array
+from lidar_quality_msgs.msg import DetectionQuality, DetectionQualityArray
+from quality_arrays import decoded_like
+from std_msgs.msg import Header
+
+FIGURES = ("original_score", "confidence", "predicted_iou")
+
+
+def _case(seed, n):
+    rng = np.random.default_rng(seed)
+    h = Header(frame_id="f" * int(rng.integers(0, 9)))
+    h.stamp.sec, h.stamp.nanosec = int(rng.integers(-5, 2**31 - 1)), int(rng.integers(0, 10**9))
+    ids = ["d" * int(rng.integers(0, 7)) + str(i) * int(rng.integers(0, 2)) for i in range(n)]
+    classes = [["car", "pedestrian", "é-bike", ""][int(k)] for k in rng.integers(0, 4, n)]
+    figures = rng.uniform(size=(n, 3))
+    figures[rng.uniform(size=figures.shape) < 0.2] = np.nan
+    fields = dict(version=1, drift_level=int(rng.integers(0, 6)),
+                  drift_score=float(np.float32(rng.uniform())) if seed % 2 else float("nan"),
+                  drift_window_frames=int(rng.integers(0, 60)),
+                  drift_quantities="q" * int(rng.integers(0, 7)), passthrough=bool(seed % 3))
+    args = (h, "m" * int(rng.integers(0, 9)), "r" * int(rng.integers(0, 9)), ids, classes,
+            figures)
+    return args, fields
+
+
+def _message(h, cid, iid, ids, classes, figures, **fields):
+    entries = [DetectionQuality(detection_index=i, detection_id=d, class_id=c,
+                                **{k: float(v) for k, v in zip(FIGURES, row)})
+               for i, (d, c, row) in enumerate(zip(ids, classes, figures))]
+    return DetectionQualityArray(header=h, confidence_model_id=cid, iou_model_id=iid,
+                                 detections=entries, **fields)
+
+
+@pytest.mark.parametrize("seed,n", [(s, n) for s in range(6) for n in (0, 1, 2, 53)])
+def test_bytes_are_the_message(seed, n):
+    args, fields = _case(seed, n)
+    data = encode_detection_quality_array(*args, **fields)
+    want = _message(*args, **fields)
+    got = decoded_like(data, want, DetectionQualityArray)
+    assert len(got.detections) == n
+    for a, b in zip(got.detections, want.detections):   # NaN != NaN: field by field
+        assert (a.detection_index, a.detection_id, a.class_id) == (
+            b.detection_index, b.detection_id, b.class_id)
+        np.testing.assert_array_equal([getattr(a, k) for k in FIGURES],
+                                      [getattr(b, k) for k in FIGURES])
