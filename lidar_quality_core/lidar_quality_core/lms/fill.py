@@ -18,36 +18,97 @@ Conventions (those of :mod:`lidar_quality_core.lms.projection`):
   is resolved exactly by scipy's Euclidean distance transform on a periodically tiled
   image instead, whose ties are scipy's.
 
-Cost: one vertical scan of the image, then a loop over column offsets that touches only
-the still unresolved empty pixels (the loop ends at the largest nearest distance).
+Cost: one compiled kernel (numba), two sweeps over the rows: down, then up, finishing
+each row with a search per empty pixel over column offsets that stops as soon as no
+farther column can tie (a few columns in a dense scan).
 """
 from __future__ import annotations
 
 import numpy as np
+from numba import njit, types
 
 __all__ = ["nearest_source", "fill_image"]
 
 _FAR = 1 << 20  # a vertical distance no image reaches (its square still fits in int64)
+_MASK = types.Array(types.boolean, 2, "C", readonly=True)
+_ROW = types.Array(types.int64, 1, "C")
 
 
-def _vertical_nearest(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per pixel (int32): row of the nearest True pixel in its own column (upper on ties)
-    and the vertical distance to it (``_FAR`` for a column without any)."""
+@njit(types.void(types.int64, types.Array(types.boolean, 1, "C", readonly=True), _ROW, _ROW,
+                 _ROW, _ROW), cache=True, nogil=True)
+def _finish_row(r, filled, out_row, below, src_row, dist):
+    """Row ``r`` of the sweep up (see :func:`_nearest`). Its own function: inlined into
+    the sweep's loop this loop is not vectorized (3x slower)."""
+    C = len(filled)
+    for c in range(C):
+        b = r if filled[c] else below[c]
+        below[c] = b
+        up = out_row[c]
+        d_up = r - up
+        d_dn = b - r
+        take_up = d_up <= d_dn
+        src_row[c] = up if take_up else b
+        dist[c] = min(d_up if take_up else d_dn, _FAR)
+        out_row[c] = r * C + c
+
+
+@njit(types.int64(_MASK, types.int64, types.Array(types.int64, 2, "C")),
+      cache=True, nogil=True)
+def _nearest(mask, max_offset, out):
+    """:func:`nearest_source` into ``out``, except that empty pixels not resolved within
+    ``max_offset`` columns get -1 (left to the EDT); returns how many.
+
+    A sweep down the rows leaves in ``out`` the nearest True row at or above each pixel.
+    A sweep up then finishes one row at a time in row buffers: the nearest True row in the
+    pixel's column (upper on ties) and its distance, then per empty pixel the search over
+    column offsets ``dc = 1, 2, ...`` right and left while ``dc^2`` can still tie the best
+    squared distance, up to ``min(cols // 2, max_offset)``.
+    """
     R, C = mask.shape
-    rows = np.arange(R, dtype=np.int32)[:, None]
-    # running max / min over rows, one row at a time (ufunc.accumulate over axis 0 is
-    # several times slower on these shapes)
-    up = np.where(mask, rows, np.int32(-_FAR))
+    for c in range(C):
+        out[0, c] = 0 if mask[0, c] else -_FAR
     for r in range(1, R):
-        np.maximum(up[r], up[r - 1], out=up[r])
-    dn = np.where(mask, rows, np.int32(2 * _FAR))
-    for r in range(R - 2, -1, -1):
-        np.minimum(dn[r], dn[r + 1], out=dn[r])
-    d_up = rows - up
-    d_dn = dn - rows
-    take_up = d_up <= d_dn
-    g = np.minimum(np.where(take_up, d_up, d_dn), _FAR)
-    return np.where(take_up, up, dn), g
+        for c in range(C):
+            out[r, c] = r if mask[r, c] else out[r - 1, c]
+    below = np.full(C, 2 * _FAR, dtype=np.int64)  # nearest True row at or below
+    src_row = np.empty(C, dtype=np.int64)
+    dist = np.empty(C, dtype=np.int64)            # _FAR: none in the column
+    empty = np.empty(C, dtype=np.int64)
+    last = min(C // 2, max_offset)
+    n_far = 0
+    for r in range(R - 1, -1, -1):
+        _finish_row(r, mask[r], out[r], below, src_row, dist)
+        # the row's empty pixels, without a branch on the mask (it mispredicts at random)
+        n_empty = 0
+        for c in range(C):
+            empty[n_empty] = c
+            n_empty += not mask[r, c]
+        for k in range(n_empty):
+            c = empty[k]
+            best = dist[c] * dist[c]
+            src = src_row[c] * C + c
+            dc = 1
+            while dc <= last:
+                d2 = dc * dc
+                if best < d2:
+                    break
+                # a tie goes to the larger column offset (= the smaller row offset); right
+                # first, so that left wins a tie between the two
+                cc = c + dc if c + dc < C else c + dc - C
+                if d2 + dist[cc] * dist[cc] <= best:
+                    best = d2 + dist[cc] * dist[cc]
+                    src = src_row[cc] * C + cc
+                cc = c - dc if c >= dc else c - dc + C
+                if d2 + dist[cc] * dist[cc] <= best:
+                    best = d2 + dist[cc] * dist[cc]
+                    src = src_row[cc] * C + cc
+                dc += 1
+            if dc > max_offset and dc <= C // 2 and best >= dc * dc:
+                out[r, c] = -1
+                n_far += 1
+            else:
+                out[r, c] = src
+    return n_far
 
 
 def _edt_periodic(mask: np.ndarray) -> np.ndarray:
@@ -72,44 +133,13 @@ def nearest_source(mask, max_offset: int = 64) -> np.ndarray:
     R, C = mask.shape
     if not mask.any():
         return np.full((R, C), -1, dtype=np.int64)
-    src = np.arange(R * C, dtype=np.int64)
-    empty = np.flatnonzero(~mask.reshape(-1))
-    if not len(empty):
-        return src.reshape(R, C)
-    src_row, g = _vertical_nearest(mask)
-    g_flat = g.reshape(-1)
-    srow_flat = src_row.reshape(-1)
-    er, ec = np.divmod(empty, C)
-    gv = g_flat[empty].astype(np.int64)
-    best = gv * gv                        # squared distance of the same-column candidate
-    best_src = srow_flat[empty].astype(np.int64) * C + ec
-    active = np.arange(len(empty))
-    dc = 1
-    last = min(C // 2, max_offset)
-    while len(active) and dc <= last:
-        d2 = dc * dc
-        active = active[best[active] >= d2]  # dc columns away is >= dc^2 away; ties count
-        if not len(active):
-            break
-        r, c = er[active], ec[active]
-        # a tie goes to the larger column offset (= the smaller row offset); right first,
-        # so that left wins a tie between the two
-        for cc in ((c + dc) % C, (c - dc) % C):
-            pix = r * C + cc
-            gg = g_flat[pix].astype(np.int64)
-            cand = d2 + gg * gg
-            better = cand <= best[active]
-            if better.any():
-                a = active[better]
-                best[a] = cand[better]
-                best_src[a] = srow_flat[pix[better]].astype(np.int64) * C + cc[better]
-        dc += 1
-    if dc > max_offset and dc <= C // 2 and len(active):
-        left = active[best[active] >= dc * dc]
-        if len(left):
-            best_src[left] = _edt_periodic(mask).reshape(-1)[empty[left]]
-    src[empty] = best_src
-    return src.reshape(R, C)
+    mask = np.ascontiguousarray(mask)
+    out = np.empty((R, C), dtype=np.int64)
+    # any offset >= cols // 2 searches every column, any offset <= 0 none
+    if _nearest(mask, max(0, min(int(max_offset), C)), out):
+        far = out == -1
+        out[far] = _edt_periodic(mask)[far]
+    return out
 
 
 def fill_image(image, mask, source=None, max_offset: int = 64) -> np.ndarray:

@@ -102,3 +102,79 @@ def test_fill_image_carries_trailing_axes():
     np.testing.assert_array_equal(out[0, 1], [1, 2, 3])
     np.testing.assert_array_equal(out[1, 3], [4, 5, 6])
     np.testing.assert_array_equal(out[0, 3], [1, 2, 3])   # across the seam
+
+
+def numpy_nearest(mask, max_offset=64):
+    """Plain numpy reference of :func:`nearest_source` (its implementation before the
+    compiled kernel): a vertical scan, then a loop over column offsets for the unresolved
+    pixels, the EDT for those past ``max_offset``."""
+    from lidar_quality_core.lms.fill import _edt_periodic
+
+    R, C = mask.shape
+    if not mask.any():
+        return np.full((R, C), -1, dtype=np.int64)
+    far = 1 << 20
+    rows = np.arange(R)[:, None]
+    up = np.maximum.accumulate(np.where(mask, rows, -far), axis=0)
+    dn = np.minimum.accumulate(np.where(mask, rows, 2 * far)[::-1], axis=0)[::-1]
+    take_up = rows - up <= dn - rows
+    g = np.minimum(np.where(take_up, rows - up, dn - rows), far).reshape(-1)
+    srow = np.where(take_up, up, dn).reshape(-1)
+    src = np.arange(R * C, dtype=np.int64)
+    empty = np.flatnonzero(~mask.reshape(-1))
+    er, ec = np.divmod(empty, C)
+    best = g[empty] ** 2
+    best_src = srow[empty] * C + ec
+    active = np.arange(len(empty))
+    dc, last = 1, min(C // 2, max_offset)
+    while len(active) and dc <= last:
+        active = active[best[active] >= dc * dc]
+        r, c = er[active], ec[active]
+        for cc in ((c + dc) % C, (c - dc) % C):          # right first: left wins ties
+            pix = r * C + cc
+            cand = dc * dc + g[pix] ** 2
+            better = cand <= best[active]
+            best[active[better]] = cand[better]
+            best_src[active[better]] = srow[pix[better]] * C + cc[better]
+        dc += 1
+    if dc > max_offset and dc <= C // 2:
+        left = active[best[active] >= dc * dc]
+        best_src[left] = _edt_periodic(mask).reshape(-1)[empty[left]]
+    src[empty] = best_src
+    return src.reshape(R, C)
+
+
+@pytest.mark.parametrize("shape", [(64, 512), (7, 33), (1, 9), (9, 1), (2, 2), (16, 130)])
+def test_matches_the_numpy_reference(shape):
+    """Every density from a single pixel (the EDT for most) to a full image, and offsets
+    from none (all to the EDT) to beyond half the width."""
+    rng = np.random.default_rng(sum(shape))
+    R, C = shape
+    for frac in (0.0, 1e-3, 0.01, 0.1, 0.5, 0.9, 1.0):
+        mask = rng.random(shape) < frac
+        if frac and not mask.any():
+            mask[rng.integers(R), rng.integers(C)] = True
+        for max_offset in (64, 3, 1, 0, -2, 10 ** 6):
+            np.testing.assert_array_equal(nearest_source(mask, max_offset),
+                                          numpy_nearest(mask, max_offset),
+                                          err_msg=f"{shape} {frac} {max_offset}")
+    stripes = np.zeros(shape, bool)
+    stripes[:, ::max(1, C // 3)] = True
+    np.testing.assert_array_equal(nearest_source(stripes[:, ::-1], 1),
+                                  numpy_nearest(stripes[:, ::-1], 1))
+
+
+def test_projected_frame_matches_the_numpy_reference():
+    """A simulated scan's mask (dense, gaps along rows and columns), with and without
+    dropped rows."""
+    from lidar_sim.frames import split_frames
+    from lidar_sim.sensor import hdl64
+
+    from lidar_quality_core.lms.projection import RangeImageConfig, project
+
+    f = next(split_frames("reference_test", sequences=[0], frames=30))
+    s = hdl64()
+    mask = project(f.xyz, RangeImageConfig.from_elevations(s.elevations_deg, s.columns),
+                   ring=f.ring).mask
+    for m in (mask, mask & (np.arange(len(mask))[:, None] % 5 != 0)):
+        np.testing.assert_array_equal(nearest_source(m), numpy_nearest(m))

@@ -201,3 +201,102 @@ def test_integer_values_keep_their_dtype_unless_the_fill_needs_more():
     np.testing.assert_array_equal(p.at_points(g, fill=-1), [5, -1])
     f = p.at_points(g)  # NaN fill: widened to float
     assert f.dtype.kind == "f" and f[0] == 5 and np.isnan(f[1])
+
+
+def numpy_project(xyz, cfg, ring=None):
+    """Plain numpy reference of :func:`project` (its implementation before the compiled
+    kernels): (row, col, pixel, range, valid, out_of_fov, index)."""
+    xyz = np.asarray(xyz).reshape(-1, 3)
+    n = len(xyz)
+    R, C = cfg.rows, cfg.cols
+    x, y, z = (xyz[:, k].astype(np.float64) for k in range(3))
+    with np.errstate(invalid="ignore", over="ignore"):
+        rng = np.sqrt(x * x + y * y + z * z)
+    finite = np.isfinite(rng)
+    row = np.full(n, -1, dtype=np.int32)
+    if ring is not None:
+        ring = np.asarray(ring).reshape(-1)
+        ok = finite & (ring >= 0) & (ring < R)
+        row[ok] = ring[ok]
+    else:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            el = np.degrees(np.arcsin(np.clip(z / np.where(rng > 0, rng, 1.0), -1.0, 1.0)))
+        r_idx = np.searchsorted(-cfg.row_edges_deg, -el[finite], side="right") - 1
+        r_idx[(r_idx < 0) | (r_idx >= R)] = -1
+        row[finite] = r_idx
+    valid = row >= 0
+    u = np.arctan2(y, x) * (-0.5 * C / np.pi) + 0.5 * C
+    col = np.full(n, -1, dtype=np.int32)
+    col[valid] = np.floor(u[valid]).astype(np.int32) % np.int32(C)
+    pixel = np.where(valid, row.astype(np.int64) * C + col, -1)
+    # nearest point per pixel: smallest range, then the lowest index
+    order = np.lexsort((np.arange(n), rng))
+    order = order[valid[order]]
+    index = np.full(R * C, -1, dtype=np.int32)
+    first = np.unique(pixel[order], return_index=True)[1]
+    index[pixel[order][first]] = order[first]
+    return (row, col, pixel, np.where(finite, rng, np.nan).astype(np.float32), valid,
+            finite & ~valid, index.reshape(R, C))
+
+
+def adversarial_cloud(n, cfg, seed):
+    """Random points plus every special case of the projection: NaN / inf, the origin,
+    points above and below the field of view, azimuth exactly +-pi and +-pi/2, straight up,
+    duplicates and equal ranges, elevations exactly on the bin edges, azimuths exactly on
+    the column edges."""
+    rng = np.random.default_rng(seed)
+    p = rng.normal(0, 1, (n, 3)) * [30, 30, 3]
+    k = n // 16
+    p[0:k] = np.nan
+    p[k:2 * k, rng.integers(0, 3)] = rng.choice([np.inf, -np.inf])
+    p[2 * k:2 * k + 5] = 0.0
+    p[2 * k + 5:3 * k, 2] = rng.choice([1e3, -1e3], k - 5)
+    p[3 * k:4 * k, 1] = rng.choice([0.0, -0.0], k)                 # azimuth +-pi or 0
+    p[3 * k:4 * k, 0] = -np.abs(p[3 * k:4 * k, 0])
+    p[4 * k:5 * k, 0] = 0.0                                          # azimuth +-pi/2
+    p[5 * k:5 * k + 5, :2] = 0.0                                     # straight up / down
+    p[6 * k:7 * k] = p[7 * k:8 * k]                                  # duplicates
+    p[8 * k:9 * k] = p[9 * k:10 * k][:, [1, 0, 2]]                   # equal ranges
+    e = np.radians(cfg.row_edges_deg[rng.integers(0, cfg.rows + 1, k)])
+    az = rng.uniform(-np.pi, np.pi, k)
+    p[10 * k:11 * k] = 10 * np.c_[np.cos(e) * np.cos(az), np.cos(e) * np.sin(az), np.sin(e)]
+    az = -np.pi + 2 * np.pi * rng.integers(0, cfg.cols + 1, k) / cfg.cols
+    p[11 * k:12 * k] = 10 * np.c_[np.cos(az), np.sin(az), rng.normal(0, 0.3, k)]
+    return p[rng.permutation(n)]
+
+
+CONFIGS = [RangeImageConfig.from_elevations(np.r_[2.0:-8.5:-1 / 3, -9.0:-25.0:-0.5], 256),
+           RangeImageConfig.uniform(16, 128, 15.0, -15.0), RangeImageConfig.uniform(1, 7, 5, -5),
+           RangeImageConfig.uniform(5, 1, 10, -10), RangeImageConfig.uniform(3000, 16, 10, -10),
+           RangeImageConfig.uniform(2, 8, 5e-324, -5e-324), UNI]
+
+
+@pytest.mark.parametrize("cfg", CONFIGS, ids=lambda c: f"{c.rows}x{c.cols}")
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_matches_the_numpy_reference_bit_for_bit(cfg, dtype):
+    for seed in range(3):
+        with np.errstate(over="ignore"):
+            xyz = adversarial_cloud(4000, cfg, seed).astype(dtype)
+        ring = np.random.default_rng(seed).integers(-2, cfg.rows + 2, len(xyz))
+        for r, pts in ((None, xyz), (ring, xyz), (ring.astype(np.uint16) % 70, xyz),
+                       (None, np.asfortranarray(xyz)), (ring + 0.5, xyz[::-1])):
+            got = project(pts, cfg, r)
+            want = numpy_project(pts, cfg, r)
+            for name, w in zip(("row", "col", "pixel", "range", "valid", "out_of_fov",
+                                "index"), want):
+                g = getattr(got, name)
+                assert g.dtype == w.dtype, name
+                np.testing.assert_array_equal(g, w, err_msg=f"{name} seed {seed}")
+
+
+def test_dense_cloud_matches_the_numpy_reference():
+    """Many more points than pixels: nearly every pixel contested, equal ranges included."""
+    cfg = RangeImageConfig.uniform(16, 64, 5.0, -15.0)
+    rng = np.random.default_rng(7)
+    xyz = (rng.normal(0, 1, (20000, 3)) * [20, 20, 2]).astype(np.float32)
+    xyz[::3] = xyz[1::3][: len(xyz[::3])]
+    ring = rng.integers(0, 16, len(xyz))
+    for r in (None, ring):
+        got, want = project(xyz, cfg, r), numpy_project(xyz, cfg, r)
+        np.testing.assert_array_equal(got.index, want[6])
+        np.testing.assert_array_equal(got.pixel, want[2])
