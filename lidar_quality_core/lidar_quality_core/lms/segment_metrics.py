@@ -74,8 +74,8 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.sparse import csc_matrix
 
+from lidar_quality_core.lms import metric_kernels as _k
 from lidar_quality_core.lms.projection import Projection, RangeImageConfig, project
 from lidar_quality_core.lms.fill import nearest_source
 from lidar_quality_core.lms.segments import interior_mask, label_periodic, neighbour_class_counts
@@ -96,9 +96,15 @@ MEASURES = ("E", "D", "V", "x", "y", "z", "i", "r")
 _STATS = ("mean", "mean_in", "mean_bd", "mean_rel", "mean_rel_in",
           "var", "var_in", "var_bd", "var_rel", "var_rel_in")
 _SIZES = ("S", "S_in", "S_bd", "S_rel", "S_rel_in", "SP")
-# neighbour order for points without a pixel of their class: 4-neighbours, then diagonals
-_NB = ((0, -1), (0, 1), (-1, 0), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1))
-_BLOCK = 16384  # points per block of the probability sums (a cache-sized float64 copy)
+# points per block of the probability sums (float64: float32 ones drift by ~1e-4 on large
+# segments); each block is summed from 0, then added: the order of the blockwise sparse
+# products this replaced, kept so that results stay bit-identical
+_BLOCK = 16384
+# probabilities per block of the entropy's logarithms (a cache-sized float32 buffer)
+_LOG_BLOCK = 1 << 17
+# 0 log 0 = 0: the entropy reads max(p, tiny) when some probability is not positive
+_TINY = np.float32(1e-37)
+_LOG_TINY = np.log(np.full(1, _TINY))[0]         # numpy's log, as every other p gets
 
 
 def n_metrics(n_classes: int) -> int:
@@ -128,48 +134,53 @@ def metric_names(n_classes: int, class_names: Sequence[str] | None = None) -> tu
     return tuple(names)
 
 
-def _class_major(probs: np.ndarray, block: int = 4096) -> np.ndarray:
-    """(n, N) float32 C-contiguous copy of (N, n) probabilities, copied in blocks of
-    points (cache-sized pieces: faster than one strided copy)."""
+def dispersion(probs: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per point from probabilities (N, n) float32, row-major or the transposed view of a
+    class-major (n, N) array (not modified): ``(argmax, E, D, V)`` (see the module doc;
+    a NaN probability makes the point's argmax 0 and E, D, V NaN)."""
+    probs = np.asarray(probs).astype(np.float32, copy=False)
     N, n = probs.shape
-    out = np.empty((n, N), dtype=np.float32)
-    for s in range(0, N, block):
-        out[:, s:s + block] = probs[s:s + block].T
-    return out
-
-
-def dispersion(probs_cm: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Per point from class-major probabilities (n, N) float32 C-contiguous, which it
-    overwrites: ``(argmax, E, D, V)`` (see the module doc)."""
-    n, N = probs_cm.shape
+    cls = np.zeros(N, dtype=np.int32)
     E = np.zeros(N, dtype=np.float32)
-    if n > 1 and N:
-        # one class row at a time: the temporaries stay in cache
-        clamp = not probs_cm.min() > 0          # 0 log 0 = 0: p * log(tiny) = 0
-        tmp = np.empty(N, dtype=np.float32)
-        for pc in probs_cm:
-            if clamp:
-                np.maximum(pc, np.float32(1e-37), out=tmp)
-                np.log(tmp, out=tmp)
-            else:
-                np.log(pc, out=tmp)
-            tmp *= pc
-            E += tmp
-        E *= np.float32(-1.0 / np.log(n))
-    p1 = probs_cm.max(axis=0)
-    if n > 1 and N:
-        # argmax = the first class reaching p1 (as np.argmax): max of descending weights
-        w = np.arange(n, 0, -1, dtype=np.uint8 if n < 256 else np.int32)[:, None]
-        cls = (n - ((probs_cm == p1) * w).max(axis=0)).astype(np.int32)
-        cls[cls >= n] = 0                                # NaN probabilities: class 0
-        # p2: the largest value left once that one entry is removed (ties: p2 = p1)
-        probs_cm.reshape(-1)[cls * N + np.arange(N)] = -np.inf
-        p2 = probs_cm.max(axis=0)
+    if n == 1 or N == 0:                                 # no second class: p2 = 0, E = 0
+        V = np.float32(1.0) - probs[:, 0] if n == 1 else np.zeros(N, dtype=np.float32)
+        return cls, E, V + np.float32(0.0), V
+    D = np.empty(N, dtype=np.float32)
+    V = np.empty(N, dtype=np.float32)
+    scale = np.float32(-1.0 / np.log(n))
+    class_major = probs.flags.f_contiguous and not probs.flags.c_contiguous
+    if class_major:
+        pcm = probs.T
     else:
-        cls = np.zeros(N, dtype=np.int32)
-        p2 = np.zeros(N, dtype=np.float32)
-    V = np.float32(1.0) - p1
-    D = V + p2
+        probs = np.ascontiguousarray(probs)
+    step = max(1, _LOG_BLOCK // n)
+    buf = np.empty(step * n, dtype=np.float32)
+    tbuf = None if class_major else np.empty(step * n, dtype=np.float32)
+
+    def run(clamp: bool):
+        smallest, nan = np.float32(np.inf), False
+        with np.errstate(divide="ignore", invalid="ignore"):      # log(p <= 0): clamped
+            for b0 in range(0, N, step):
+                m = min(step, N - b0)
+                logs = buf[:m * n].reshape(n, m)
+                if class_major:
+                    src, col0 = pcm, b0
+                    np.log(pcm[:, b0:b0 + m], out=logs)
+                else:   # class rows of the block, in cache
+                    src, col0 = tbuf[:m * n].reshape(n, m), 0
+                    _k.transpose_block(probs, b0, src)
+                    np.log(src, out=logs)
+                lo, bad = _k.dispersion_block(src, col0, logs, b0, clamp, _TINY, _LOG_TINY,
+                                              scale, cls, E, D, V)
+                smallest, nan = min(smallest, lo), nan or bad
+        return smallest, nan
+
+    # 0 log 0 = 0: the logs read max(p, tiny) when some p is <= 0 or NaN, which is known
+    # after the pass: assumed, and the entropy redone in the rare case of tiny positive
+    # probabilities without any such p
+    smallest, nan = run(True)
+    if not nan and 0 < smallest < _TINY:
+        run(False)
     return cls, E, D, V
 
 
@@ -238,6 +249,10 @@ class SegmentResult:
         return out.reshape(self.source.shape + v.shape[1:])
 
 
+def _i32(a: np.ndarray) -> np.ndarray:
+    return np.ascontiguousarray(a, dtype=np.int32)
+
+
 def _empty_result(n, names_arg, proj, N, point_class, E, D, V) -> SegmentResult:
     R, C = proj.cfg.shape
     z = np.zeros(0, dtype=np.int64)
@@ -281,78 +296,45 @@ def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=Non
 
     proj = project(xyz, cfg, ring)
     probs = probs.astype(np.float32, copy=False)
-    # top two, argmax and entropy want class rows (a copy: dispersion overwrites it), P_c
-    # wants point rows; a class-major input (transposed view) is used as it is
-    if probs.flags.f_contiguous and not probs.flags.c_contiguous:
-        probs_cm = np.array(probs.T)
-    else:
+    # a class-major input (transposed view) is read as it is, anything else row-major
+    if not (probs.flags.f_contiguous and not probs.flags.c_contiguous):
         probs = np.ascontiguousarray(probs)
-        probs_cm = _class_major(probs)
-    point_class, E, D, V = dispersion(probs_cm)
-    del probs_cm
+    point_class, E, D, V = dispersion(probs)
     R, C = cfg.shape
-    idx = proj.index.reshape(-1)
+    idx = _i32(proj.index).reshape(-1)
     mask = idx >= 0
     if not mask.any():
         return _empty_result(n, names_arg, proj, N, point_class, E, D, V)
 
     # fill: every pixel reads the point of its nearest projected pixel
     near = nearest_source(mask.reshape(R, C)).reshape(-1)
-    source = idx[near]
-    Yf = point_class[source]
+    if near.dtype != np.int64:                      # the kernel reads int64 or int32
+        near = _i32(near)
+    source = np.empty(R * C, np.int32)
+    Yf = np.empty(R * C, np.int32)
+    _k.read_sources(idx, point_class, near, source, Yf)
     Y = Yf.reshape(R, C)
     segments, n_seg, segment_class = label_periodic(Y, return_values=True)
     interior = interior_mask(Y)
     seg = segments.reshape(-1)
     inn = interior.reshape(-1)
 
-    # Sums over the pixels of the filled image, done over points: every winner point at
-    # its own pixel, weighted by 1 + the filled pixels that read it and fall in the same
-    # row (nine in ten), plus the other filled pixels read one by one. Rows:
-    # (segment, boundary) -> seg, (segment, interior) -> n_seg + seg, and nb for the
-    # points no pixel keeps. Sparse products (row x point) @ (point x value), in float64.
+    # Sums over the pixels of the filled image, done over points: every kept point at its
+    # own pixel, weighted by 1 + the filled pixels that read it and fall in the same region
+    # (nine in ten), plus the other filled pixels read one by one (metric_kernels). Regions
+    # (rows): (segment, boundary) -> seg, (segment, interior) -> n_seg + seg; in float64.
     nb = 2 * n_seg
-    rid = seg + n_seg * inn
-    proj_pix = np.flatnonzero(mask)
-    win = idx[proj_pix]
-    rid_pt = np.full(N, nb, dtype=np.int32)
-    rid_pt[win] = rid[proj_pix]
-    fill_pix = np.flatnonzero(~mask)
-    rid_fill = rid[fill_pix]
-    src_fill = source[fill_pix]
-    same = rid_fill == rid_pt[src_fill]
-    weight = np.bincount(src_fill[same], minlength=N).astype(np.float64)
-    weight += 1.0
-    other_fill = np.flatnonzero(~same)
-    inten = np.zeros(N, np.float32) if intensity is None else intensity
     M = len(MEASURES)
-    G = np.stack([E, D, V, xyz[:, 0], xyz[:, 1], xyz[:, 2], inten, proj.range],
-                 axis=1).astype(np.float64)
-    G2 = np.square(G)
-    cols = np.arange(N + 1, dtype=np.int32)
-    B = csc_matrix((weight, rid_pt, cols), shape=(nb + 1, N))
-    s1, s2 = B @ G, B @ G2
-    # probabilities: float64 sums too (float32 ones drift by ~1e-4 on large segments),
-    # converted block by block so that no float64 copy of them all is made
-    psum = np.zeros((nb + 1, n))
-    for b0 in range(0, N, _BLOCK):
-        b1 = min(N, b0 + _BLOCK)
-        psum += csc_matrix((weight[b0:b1], rid_pt[b0:b1], cols[:b1 - b0 + 1]),
-                           shape=(nb + 1, b1 - b0)) @ np.asarray(probs[b0:b1], np.float64,
-                                                                 order="C")
-    if len(other_fill):
-        nf = len(other_fill)
-        # its own column pointer: nf exceeds N in sparse clouds (more filled pixels than
-        # points), where cols[:nf + 1] would be too short (found by fuzzing)
-        Bf = csc_matrix((np.ones(nf), rid_fill[other_fill], np.arange(nf + 1, dtype=np.int64)),
-                        shape=(nb + 1, nf))
-        sf = src_fill[other_fill]
-        Gf = G[sf]
-        s1 += Bf @ Gf
-        s2 += Bf @ (Gf * Gf)
-        psum += Bf @ probs[sf].astype(np.float64)
-    SP_rid = np.bincount(rid_pt, minlength=nb + 1)[:nb]       # projected pixels per row
-    cnt = SP_rid + np.bincount(rid_fill, minlength=nb)
+    inten = np.zeros(N, np.float32) if intensity is None else intensity
+    cols5 = (xyz[:, 0], xyz[:, 1], xyz[:, 2], inten, proj.range)
+    if any(c.dtype != np.float32 for c in cols5):   # the kernel's other variant: float64
+        cols5 = tuple(np.asarray(c, np.float64) for c in cols5)
+    sums = np.zeros((nb, 2 * M))
+    psum = np.zeros((nb, n))
+    SP_rid = np.zeros(nb, np.int64)                              # projected pixels
+    cnt = np.zeros(nb, np.int64)                                 # all pixels
+    _k.region_sums(idx, source, _i32(seg), np.ascontiguousarray(inn, bool),
+                   n_seg, E, D, V, *cols5, probs, _BLOCK, sums, psum, SP_rid, cnt)
     SP = SP_rid[:n_seg] + SP_rid[n_seg:]
     S_bd, S_in = cnt[:n_seg], cnt[n_seg:]
     S = S_bd + S_in
@@ -360,67 +342,25 @@ def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=Non
     kid = np.flatnonzero(kept)
     k = len(kid)
 
-    # regions: segment = boundary + interior rows, interior, boundary
-    sums = np.concatenate([s1[:, :M], s2[:, :M]], axis=1)
-    s_reg = np.stack([sums[:n_seg] + sums[n_seg:nb], sums[n_seg:nb], sums[:n_seg]],
-                     axis=1)[kid]                                  # (k, 3, 2M)
-    S3 = np.stack([S[kid], S_in[kid], S_bd[kid]], axis=1).astype(np.float64)
-    has = (S3 > 0)[:, :, None]
-    den = np.where(has, S3[:, :, None], 1.0)
-    mean = np.where(has, s_reg[:, :, :M] / den, 0.0)               # (k, 3, M)
-    var = np.where(has, np.maximum(s_reg[:, :, M:] / den - mean * mean, 0.0), 0.0)
-    S_rel = S3[:, 0] / S3[:, 2]
-    S_rel_in = S3[:, 1] / S3[:, 2]
-    stats = np.empty((k, M, len(_STATS)))
-    stats[:, :, 0:3] = mean.transpose(0, 2, 1)
-    stats[:, :, 3] = mean[:, 0] * S_rel[:, None]
-    stats[:, :, 4] = mean[:, 1] * S_rel_in[:, None]
-    stats[:, :, 5:8] = var.transpose(0, 2, 1)
-    stats[:, :, 8] = var[:, 0] * S_rel[:, None]
-    stats[:, :, 9] = var[:, 1] * S_rel_in[:, None]
-
+    # statistics, sizes and P_c per kept segment (metric_kernels.segment_features)
+    features = np.empty((k, n_metrics(n)))
+    _k.segment_features(sums, psum, cnt, SP_rid, kid, features)
     # neighbourhood class ratios N_c
     nbc = neighbour_class_counts(segments, Y, np.flatnonzero(~inn), n_seg, n)[kid]
     tot = nbc.sum(axis=1, keepdims=True)
-    Nc = np.divide(nbc, tot, out=np.zeros(nbc.shape), where=tot > 0)
-    # mean class probabilities P_c
-    Pc = (psum[:n_seg] + psum[n_seg:nb])[kid] / S3[:, :1]
+    o = M * len(_STATS) + len(_SIZES)
+    features[:, o:o + n] = np.divide(nbc, tot, out=np.zeros(nbc.shape), where=tot > 0)
 
-    features = np.concatenate(
-        [stats.reshape(k, M * len(_STATS)), S3, S_rel[:, None], S_rel_in[:, None],
-         SP[kid, None].astype(np.float64), Nc, Pc], axis=1)
-
-    # points -> segments: a winner is in its pixel's segment; other projected points
-    # (their pixel kept a nearer point) too if of the pixel's class, else in the segment
-    # of the first neighbour pixel of their class
+    # points -> segments (see the module doc)
     point_segment = np.full(N, -1, dtype=np.int32)
-    point_segment[win] = seg[proj_pix]
     n_points = SP.copy()
-    if np.count_nonzero(proj.valid) > len(win):
-        other = proj.valid.copy()
-        other[win] = False
-        other = np.flatnonzero(other)
-        pix = proj.pixel[other]
-        ps = seg[pix].astype(np.int32)
-        wrong = np.flatnonzero(Yf[pix] != point_class[other])
-        if len(wrong):
-            pr = proj.row[other[wrong]].astype(np.int64)
-            pcol = proj.col[other[wrong]].astype(np.int64)
-            want = point_class[other[wrong]]
-            found = np.full(len(wrong), -1, dtype=np.int32)
-            for dr, dc in _NB:
-                rr = pr + dr
-                ok = np.flatnonzero((found < 0) & (rr >= 0) & (rr < R))
-                q = rr[ok] * C + (pcol[ok] + dc) % C
-                hit = Yf[q] == want[ok]
-                found[ok[hit]] = seg[q[hit]]
-            ps[wrong] = found
-        point_segment[other] = ps
-        n_points += np.bincount(ps[ps >= 0], minlength=n_seg)
+    _k.point_segments(idx, np.ascontiguousarray(proj.valid, bool), _i32(proj.pixel),
+                      _i32(proj.row), _i32(proj.col), _i32(seg), Yf, point_class, C,
+                      point_segment, n_points)
 
     return SegmentResult(
         n_classes=n, class_names=names_arg, projection=proj,
-        source=source.reshape(R, C).astype(np.int32), pred=Y, segments=segments,
+        source=source.reshape(R, C), pred=Y, segments=segments,
         interior=interior, segment_class=segment_class.astype(np.int32), size=S,
         size_projected=SP, n_points=n_points, kept=kept, features=features,
         point_segment=point_segment, point_class=point_class,

@@ -265,6 +265,56 @@ def test_ring_field_and_probability_layouts_give_the_same_result():
     np.testing.assert_array_equal(class_major, probs.T)      # the input is not modified
 
 
+def test_layouts_give_identical_results_on_awkward_probabilities():
+    # NaN, infinite, zero, negative, tiny and tied probabilities: every field of the result
+    # is the same for row-major and class-major input (the compiled passes read either)
+    import dataclasses
+
+    cfg, xyz, probs, inten, gt = random_scene(4, R=8, C=24, n=5)
+    rng = np.random.default_rng(4)
+    p = probs.copy()
+    k = rng.permutation(len(p))
+    p[k[:4], 1] = np.nan
+    p[k[4:8], 0] = np.inf
+    p[k[8:12]] = 0.0
+    p[k[12:16], 2] = -0.5
+    p[k[16:20]] = np.float32(0.2)
+    p[k[20:24], 3] = np.float32(1e-39)
+    with np.errstate(all="ignore"):
+        a = compute_segments(xyz, p, cfg, intensity=inten, min_points=1)
+        b = compute_segments(xyz, np.ascontiguousarray(p.T).T, cfg, intensity=inten,
+                             min_points=1)
+    for f in dataclasses.fields(a):
+        va, vb = getattr(a, f.name), getattr(b, f.name)
+        if isinstance(va, np.ndarray):
+            assert va.dtype == vb.dtype, f.name
+            np.testing.assert_array_equal(va, vb, err_msg=f.name)
+    assert np.isnan(a.point_E[k[:4]]).all() and (a.point_class[k[:4]] == 0).all()
+    assert (a.point_class[k[16:20]] == 0).all() and (a.point_D[k[16:20]] == 1.0).all()
+
+
+def test_read_only_inputs():
+    # a message's buffer or a frozen array: read, never written (the compiled passes take
+    # read-only arrays), in either layout and dtype
+    cfg, xyz, probs, inten, gt = random_scene(6)
+    want = compute_segments(xyz, probs, cfg, intensity=inten)
+
+    def frozen(a):
+        a = np.array(a)
+        a.flags.writeable = False
+        return a
+
+    for x, p, i in ((xyz, probs, inten), (xyz.astype(np.float32), probs, inten.astype(np.float32)),
+                    (frozen(xyz.T).T, frozen(probs.T).T, inten)):
+        got = compute_segments(frozen(x), frozen(p), cfg, intensity=frozen(i))
+        np.testing.assert_array_equal(got.point_segment, want.point_segment)
+        np.testing.assert_array_equal(got.point_E, want.point_E)
+        if x.dtype == xyz.dtype:
+            np.testing.assert_array_equal(got.features, want.features)
+        else:
+            np.testing.assert_allclose(got.features, want.features, rtol=1e-5, atol=1e-6)
+
+
 def test_min_points_and_to_points():
     cfg, xyz, probs, inten, gt = random_scene(7)
     res = compute_segments(xyz, probs, cfg, min_points=3)
