@@ -6,7 +6,7 @@ cloud (120k points) deserialized by rclpy, the 50 detections and 500 proposals
 serialized bytes (``detection_cdr``, as the node's raw subscriptions do), then one
 ``LmdProcessor.process`` call, the body of the node's frame callback: features
 (threshold mode), meta classifier and regressor, the re-scored output detections
-(serialized bytes) and the DetectionQualityArray. Markers are built only while someone
+(serialized bytes) and the DetectionQualityArray (bytes too, as the node publishes it). Markers are built only while someone
 subscribes to them, so they are timed apart: ``lmd.node_frame_markers_ms`` (the same plus
 the MarkerArray). ``lmd.node_frame_exact_ms``: exact mode (the node runs NMS over the 500
 proposals itself; IoU 0.1, score >= 0.1; the survivors are scored).
@@ -90,12 +90,12 @@ def figures():
 
     with threadpool_limits(limits=1):
         s = LmdSettings(proposal_mode="threshold")
-        proc = LmdProcessor(s, _models(s, tmp.name))
+        proc = LmdProcessor(s, _models(s, tmp.name), serialized_quality=True)
         yield "lmd.node_frame_ms", lambda: proc.process(*inputs()), "percentiles"
         yield ("lmd.node_frame_markers_ms", lambda: proc.process(*inputs(), markers=True),
                "percentiles")
         se = LmdSettings(proposal_mode="exact")
-        proc_e = LmdProcessor(se, _models(se, tmp.name))
+        proc_e = LmdProcessor(se, _models(se, tmp.name), serialized_quality=True)
 
         def frame_exact():
             c, _, p = inputs()

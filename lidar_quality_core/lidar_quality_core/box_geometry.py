@@ -196,29 +196,10 @@ def _grid_pairs(p, tab: _BoxTable, normal, cs, out_pt, out_bx):
             break
         cs *= 2.0  # many mid-size boxes: coarsen until the incidence table is bounded
 
-    # (box, cell) incidences of each box's axis-aligned rectangle ...
-    tot = int(ncell.sum())
-    ent = np.repeat(np.arange(len(normal)), ncell)
-    k = np.arange(tot) - np.repeat(np.cumsum(ncell) - ncell, ncell)
-    gx, gy = np.divmod(k, cny[ent])
-    gx += ix0[ent]
-    gy += iy0[ent]
-    # ... minus the cells the rotated rectangle misses (separating axes = box axes).
-    ccx = x0 + (gx + 0.5) * cs - t.cx[ent]
-    ccy = y0 + (gy + 0.5) * cs - t.cy[ent]
-    ce, se = t.c[ent], t.s[ent]
-    r = 0.5 * cs * (np.abs(ce) + np.abs(se)) + 2.0 * tol
-    hit = ((np.abs(ce * ccx + se * ccy) <= t.hl[ent] + r)
-           & (np.abs(ce * ccy - se * ccx) <= t.hw[ent] + r))
-    ent_cell = gx[hit] * ny + gy[hit]
-    ncells = nx * ny
-    # Only grouping by cell is needed; a 16-bit key gets numpy's radix sort.
-    order = (np.argsort(ent_cell.astype(np.uint16), kind="stable") if ncells <= 1 << 16
-             else np.argsort(ent_cell))
-    ent_box = ent[hit][order]
-    cell_cnt = np.bincount(ent_cell, minlength=ncells)
-    cell_start = np.cumsum(cell_cnt) - cell_cnt
-    cell_box = normal[ent_box]
+    # the cells each box's rotated rectangle may touch, grouped by cell (box order kept)
+    cell_start, cell_cnt, cell_box = _cell_table(
+        ix0, ix1, iy0, iy1, x0, y0, cs, tol, t.cx, t.cy, t.c, t.s, t.hl, t.hw,
+        np.ascontiguousarray(normal, dtype=np.int64), nx * ny, ny)
     if p.dtype != ftype:
         p = p.astype(ftype)
     pt, bx = _grid_kernel(p[:, 0], p[:, 1], p[:, 2], ftype(x0), ftype(y0), ftype(inv), nx, ny,
@@ -226,6 +207,49 @@ def _grid_pairs(p, tab: _BoxTable, normal, cs, out_pt, out_bx):
                           -tab.s, tab.hl, tab.hw, tab.hh)
     out_pt.append(pt)
     out_bx.append(bx)
+
+
+@njit("Tuple((int64[::1], int64[::1], int64[::1]))(int64[::1], int64[::1], int64[::1], "
+      "int64[::1], float64, float64, float64, float64, float64[::1], float64[::1], float64[::1], "
+      "float64[::1], float64[::1], float64[::1], int64[::1], int64, int64)", cache=True, nogil=True)
+def _cell_table(ix0, ix1, iy0, iy1, x0, y0, cs, tol, cx, cy, c, s, hl, hw, normal, ncells, ny):
+    # The (box, cell) incidences of each box's axis-aligned rectangle, minus the cells the
+    # rotated rectangle misses (separating axes = box axes, with slack), then grouped by
+    # cell in box order: (start, count, box) per cell.
+    n = len(normal)
+    tot = 0
+    for j in range(n):
+        tot += (ix1[j] - ix0[j] + 1) * (iy1[j] - iy0[j] + 1)
+    ent_cell = np.empty(tot, np.int64)
+    ent_box = np.empty(tot, np.int64)
+    cnt = np.zeros(ncells, np.int64)
+    m = 0
+    for j in range(n):
+        ce, se = c[j], s[j]
+        r = 0.5 * cs * (abs(ce) + abs(se)) + 2.0 * tol
+        for gx in range(ix0[j], ix1[j] + 1):
+            ccx = x0 + (gx + 0.5) * cs - cx[j]
+            for gy in range(iy0[j], iy1[j] + 1):
+                ccy = y0 + (gy + 0.5) * cs - cy[j]
+                if (abs(ce * ccx + se * ccy) <= hl[j] + r
+                        and abs(ce * ccy - se * ccx) <= hw[j] + r):
+                    cell = gx * ny + gy
+                    ent_cell[m] = cell
+                    ent_box[m] = normal[j]
+                    cnt[cell] += 1
+                    m += 1
+    start = np.empty(ncells, np.int64)
+    acc = 0
+    for q in range(ncells):
+        start[q] = acc
+        acc += cnt[q]
+    fill = start.copy()
+    box = np.empty(m, np.int64)
+    for e in range(m):
+        q = ent_cell[e]
+        box[fill[q]] = ent_box[e]
+        fill[q] += 1
+    return start, cnt, box
 
 
 _KERNEL_SIG = ("Tuple((int64[::1], int64[::1]))({f}[:], {f}[:], {f}[:], {f}, {f}, {f}, int64, "
@@ -292,13 +316,26 @@ def points_in_boxes(points, boxes, margin: float = 0.0):
     """
     n = len(as_boxes(boxes))
     pt, bx = _inside_pairs(points, boxes, margin)
-    # Pairs come out point-major; a stable sort by box keeps points ascending per box
-    # (int16 keys make numpy use a radix sort).
-    key = bx.astype(np.int16) if n <= np.iinfo(np.int16).max else bx
-    order = np.argsort(key, kind="stable")
-    offsets = np.zeros(n + 1, dtype=np.int64)
-    np.cumsum(np.bincount(bx, minlength=n), out=offsets[1:])
-    return offsets, pt[order]
+    # Pairs come out point-major: grouped by box in a stable counting sort, the points of
+    # each box stay ascending.
+    return _group_by_box(np.ascontiguousarray(pt, np.int64), np.ascontiguousarray(bx, np.int64),
+                         n)
+
+
+@njit("Tuple((int64[::1], int64[::1]))(int64[::1], int64[::1], int64)", cache=True, nogil=True)
+def _group_by_box(pt, bx, n):
+    offsets = np.zeros(n + 1, np.int64)
+    for b in bx:
+        offsets[b + 1] += 1
+    for b in range(n):
+        offsets[b + 1] += offsets[b]
+    fill = offsets[:n].copy()
+    out = np.empty(len(pt), np.int64)
+    for k in range(len(pt)):
+        b = bx[k]
+        out[fill[b]] = pt[k]
+        fill[b] += 1
+    return offsets, out
 
 
 def count_points_in_boxes(points, boxes, margin: float = 0.0) -> np.ndarray:
