@@ -8,8 +8,9 @@ serialized bytes (``detection_cdr``, as the node's raw subscriptions do), then o
 (threshold mode), meta classifier and regressor, the re-scored output detections
 (serialized bytes) and the DetectionQualityArray (bytes too, as the node publishes it).
 Markers are built only while someone subscribes to them, so they are timed apart:
-``lmd.node_frame_markers_ms`` (the same plus the MarkerArray). ``lmd.node_frame_exact_ms``: exact mode (the node runs NMS over the 500
-proposals itself; IoU 0.1, score >= 0.1; the survivors are scored).
+``lmd.node_frame_markers_ms`` (the same plus the MarkerArray). ``lmd.node_frame_exact_ms``:
+exact mode (the node runs NMS over the 500 proposals itself; IoU 0.1, score >= 0.1; the
+survivors are scored).
 
 Models: the shipped ``models/lmd/lmd_<mode>_*`` when present, else XGBoost models of
 the shipped kind and size (``meta_model.make_estimator`` defaults) fitted here on a few
