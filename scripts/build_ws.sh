@@ -38,3 +38,8 @@ done
 cd ros2_ws
 colcon --log-base log build --symlink-install --event-handlers console_direct- \
   --cmake-args -DBUILD_TESTING=OFF -DPython3_EXECUTABLE="$(command -v python)" "$@"
+cd "$LQ_ROOT"
+# Compile the numba kernels of lidar_quality_core once, into their caches next to the
+# modules (about 25 s on two cores): no node, test or benchmark pays it at start-up.
+echo "build: compiling the numba kernels (cached)"
+bash scripts/with_env.sh python -c "import lms_ros.pipeline, lmd_ros.pipeline, mimo_ros.pipeline"
