@@ -18,10 +18,9 @@ No rclpy.
 """
 from __future__ import annotations
 
-
 import numpy as np
 
-from .quality_array_cdr import U32, append_version_fields, array_head, cdr_string, pad
+from .quality_array_cdr import append_entries, append_version_fields, array_head
 
 __all__ = ["encode_cluster_uncertainty_array"]
 
@@ -35,20 +34,10 @@ def encode_cluster_uncertainty_array(header, confidence_model_id: str, iou_model
     ``detection_ids[i]``, ``class_ids[i]``, ``cluster_size[i]`` and row ``i`` of
     ``figures`` (C, 7): Shannon entropy, aleatoric entropy, mutual information, ETV, ATV,
     confidence, predicted IoU; the keyword fields as in ``DomainVerdict.message_fields``."""
-    sizes = np.asarray(cluster_size, dtype=np.int64).reshape(-1).tolist()
-    n = len(sizes)
-    values = np.asarray(figures, dtype="<f8").reshape(n, 7).tobytes()
+    n = len(detection_ids)
     out = array_head(header, confidence_model_id, iou_model_id, n)
-    for i, (did, cid, size) in enumerate(zip(detection_ids, class_ids, sizes)):
-        pad(out, 4)
-        out += U32.pack(i)
-        out += cdr_string(str(did))
-        pad(out, 4)
-        out += cdr_string(str(cid))
-        pad(out, 4)
-        out += U32.pack(size)
-        pad(out, 8)
-        out += values[56 * i:56 * (i + 1)]
+    append_entries(out, detection_ids, class_ids, np.asarray(figures).reshape(n, 7),
+                   counts=cluster_size)
     return append_version_fields(
         out, version=version, drift_level=drift_level, drift_score=drift_score,
         drift_window_frames=drift_window_frames, drift_quantities=drift_quantities,

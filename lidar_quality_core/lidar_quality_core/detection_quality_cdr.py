@@ -3,8 +3,8 @@
 Why: lmd_node publishes one entry per scored detection, every frame. Building ~50 Python
 messages and having rclpy convert them for publishing cost a few tenths of a millisecond
 of every LMD frame; written here from the frame's arrays it is one loop over the
-detections with the three float64 figures of all of them packed at once. The bytes are
-what rclpy serializes for the same message (padding bytes aside;
+detections (``quality_array_cdr.append_entries``, shared with MIMO's uncertainty array).
+The bytes are what rclpy serializes for the same message (padding bytes aside;
 ``test_detection_quality_cdr`` compares them).
 
 Layout (plain little-endian CDR, framing of ``quality_array_cdr``): header, the two model
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .quality_array_cdr import U32, append_version_fields, array_head, cdr_string, pad
+from .quality_array_cdr import append_entries, append_version_fields, array_head
 
 __all__ = ["encode_detection_quality_array"]
 
@@ -31,16 +31,8 @@ def encode_detection_quality_array(header, confidence_model_id: str, iou_model_i
     original score, confidence, predicted IoU; the keyword fields as in
     ``DomainVerdict.message_fields``."""
     n = len(detection_ids)
-    values = np.asarray(figures, dtype="<f8").reshape(n, 3).tobytes()
     out = array_head(header, confidence_model_id, iou_model_id, n)
-    for i, (did, cid) in enumerate(zip(detection_ids, class_ids)):
-        pad(out, 4)
-        out += U32.pack(i)
-        out += cdr_string(str(did))
-        pad(out, 4)
-        out += cdr_string(str(cid))
-        pad(out, 8)
-        out += values[24 * i:24 * (i + 1)]
+    append_entries(out, detection_ids, class_ids, np.asarray(figures).reshape(n, 3))
     return append_version_fields(
         out, version=version, drift_level=drift_level, drift_score=drift_score,
         drift_window_frames=drift_window_frames, drift_quantities=drift_quantities,

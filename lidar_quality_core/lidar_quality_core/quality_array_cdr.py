@@ -1,6 +1,7 @@
 """The framing the suite's quality arrays share on the wire, written as CDR bytes:
-``segment_quality_cdr`` (SegmentQualityArray) and ``cluster_uncertainty_cdr``
-(ClusterUncertaintyArray) write their entries between these.
+``segment_quality_cdr`` (SegmentQualityArray), ``detection_quality_cdr``
+(DetectionQualityArray) and ``cluster_uncertainty_cdr`` (ClusterUncertaintyArray) write
+their entries between these; the last two entries of one shape (:func:`append_entries`).
 
 Plain little-endian CDR (``00 01``); each primitive is aligned to its size relative to
 the end of the 4-byte encapsulation header. Head: header (stamp, frame_id), the two model
@@ -11,6 +12,8 @@ No rclpy.
 from __future__ import annotations
 
 import struct
+
+import numpy as np
 
 U32 = struct.Struct("<I")
 
@@ -37,6 +40,27 @@ def array_head(header, confidence_model_id: str, iou_model_id: str, n: int) -> b
     pad(head, 4)
     head += U32.pack(n)
     return head
+
+
+def append_entries(out: bytearray, detection_ids, class_ids, figures, counts=None) -> None:
+    """Entries of a detection's kind to ``out``: entry ``i`` is uint32 ``i``, string
+    ``detection_ids[i]``, string ``class_ids[i]``, uint32 ``counts[i]`` (only when
+    ``counts`` is given), then row ``i`` of ``figures`` (n, k) as k float64."""
+    values = np.asarray(figures, dtype="<f8")
+    width = 8 * values.shape[1]
+    values = values.tobytes()
+    counts = None if counts is None else np.asarray(counts, dtype=np.int64).reshape(-1).tolist()
+    for i, (did, cid) in enumerate(zip(detection_ids, class_ids)):
+        pad(out, 4)
+        out += U32.pack(i)
+        out += cdr_string(str(did))
+        pad(out, 4)
+        out += cdr_string(str(cid))
+        if counts is not None:
+            pad(out, 4)
+            out += U32.pack(counts[i])
+        pad(out, 8)
+        out += values[width * i:width * (i + 1)]
 
 
 def append_version_fields(out: bytearray, *, version: int, drift_level: int,

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from lidar_quality_core.cluster_uncertainty_cdr import encode_cluster_uncertainty_array
 from lidar_quality_msgs.msg import ClusterUncertainty, ClusterUncertaintyArray
-from quality_arrays import decoded_like
-from std_msgs.msg import Header
+from quality_arrays import (decoded_like, random_header, random_model_ids,
+                            random_version_fields)
 
 FIGURES = ("shannon_entropy", "aleatoric_entropy", "mutual_information",
            "epistemic_total_variance", "aleatoric_total_variance", "confidence",
@@ -13,17 +13,13 @@ FIGURES = ("shannon_entropy", "aleatoric_entropy", "mutual_information",
 
 def _case(seed, n):
     rng = np.random.default_rng(seed)
-    h = Header(frame_id="f" * int(rng.integers(0, 9)))
-    h.stamp.sec, h.stamp.nanosec = int(rng.integers(-5, 2**31 - 1)), int(rng.integers(0, 10**9))
+    h = random_header(rng)
     ids = [f"{int(rng.integers(0, 4))}:" + "x" * int(rng.integers(0, 7)) for _ in range(n)]
     classes = [["car", "pedestrian", "é-bike", ""][int(k)] for k in rng.integers(0, 4, n)]
     figures = rng.uniform(size=(n, 7))
     figures[rng.uniform(size=figures.shape) < 0.2] = np.nan
-    fields = dict(version=1, drift_level=int(rng.integers(0, 6)),
-                  drift_score=float(np.float32(rng.uniform())) if seed % 2 else float("nan"),
-                  drift_window_frames=int(rng.integers(0, 60)),
-                  drift_quantities="q" * int(rng.integers(0, 7)), passthrough=bool(seed % 3))
-    args = (h, "m" * int(rng.integers(0, 9)), "r" * int(rng.integers(0, 9)), ids, classes,
+    fields = random_version_fields(rng, seed)
+    args = (h, *random_model_ids(rng), ids, classes,
             rng.integers(1, 5, n), figures)
     return args, fields
 

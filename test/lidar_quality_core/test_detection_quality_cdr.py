@@ -3,25 +3,21 @@ import numpy as np
 import pytest
 from lidar_quality_core.detection_quality_cdr import encode_detection_quality_array
 from lidar_quality_msgs.msg import DetectionQuality, DetectionQualityArray
-from quality_arrays import decoded_like
-from std_msgs.msg import Header
+from quality_arrays import (decoded_like, random_header, random_model_ids,
+                            random_version_fields)
 
 FIGURES = ("original_score", "confidence", "predicted_iou")
 
 
 def _case(seed, n):
     rng = np.random.default_rng(seed)
-    h = Header(frame_id="f" * int(rng.integers(0, 9)))
-    h.stamp.sec, h.stamp.nanosec = int(rng.integers(-5, 2**31 - 1)), int(rng.integers(0, 10**9))
+    h = random_header(rng)
     ids = ["d" * int(rng.integers(0, 7)) + str(i) * int(rng.integers(0, 2)) for i in range(n)]
     classes = [["car", "pedestrian", "é-bike", ""][int(k)] for k in rng.integers(0, 4, n)]
     figures = rng.uniform(size=(n, 3))
     figures[rng.uniform(size=figures.shape) < 0.2] = np.nan
-    fields = dict(version=1, drift_level=int(rng.integers(0, 6)),
-                  drift_score=float(np.float32(rng.uniform())) if seed % 2 else float("nan"),
-                  drift_window_frames=int(rng.integers(0, 60)),
-                  drift_quantities="q" * int(rng.integers(0, 7)), passthrough=bool(seed % 3))
-    args = (h, "m" * int(rng.integers(0, 9)), "r" * int(rng.integers(0, 9)), ids, classes,
+    fields = random_version_fields(rng, seed)
+    args = (h, *random_model_ids(rng), ids, classes,
             figures)
     return args, fields
 

@@ -3,24 +3,20 @@ import numpy as np
 import pytest
 from lidar_quality_core.segment_quality_cdr import encode_segment_quality_array
 from lidar_quality_msgs.msg import SegmentQuality, SegmentQualityArray
-from quality_arrays import decoded_like
-from std_msgs.msg import Header
+from quality_arrays import (decoded_like, random_header, random_model_ids,
+                            random_version_fields)
 
 
 def _case(seed, n):
     rng = np.random.default_rng(seed)
     names = ["c" * int(k) for k in rng.integers(0, 12, size=int(rng.integers(1, 6)))]
     names[0] = "road-é"  # non-ASCII, and a '-'
-    h = Header(frame_id="f" * int(rng.integers(0, 9)))
-    h.stamp.sec, h.stamp.nanosec = int(rng.integers(-5, 2**31 - 1)), int(rng.integers(0, 10**9))
+    h = random_header(rng)
     cls = rng.integers(0, len(names), n)
     conf, iou = rng.uniform(size=n), rng.uniform(size=n)
     conf[rng.uniform(size=n) < 0.3] = np.nan
-    fields = dict(version=1, drift_level=int(rng.integers(0, 6)),
-                  drift_score=float(np.float32(rng.uniform())) if seed % 2 else float("nan"),
-                  drift_window_frames=int(rng.integers(0, 60)),
-                  drift_quantities="q" * int(rng.integers(0, 7)), passthrough=bool(seed % 3))
-    args = (h, "m" * int(rng.integers(0, 9)), "r" * int(rng.integers(0, 9)), cls, names,
+    fields = random_version_fields(rng, seed)
+    args = (h, *random_model_ids(rng), cls, names,
             rng.integers(0, 5000, n), rng.integers(0, 5000, n), conf, iou)
     return args, fields
 

@@ -1,7 +1,29 @@
-"""Checks shared by the tests of the quality arrays written as bytes
-(``segment_quality_cdr``, ``cluster_uncertainty_cdr``)."""
+"""Cases and checks shared by the tests of the quality arrays written as bytes
+(``segment_quality_cdr``, ``detection_quality_cdr``, ``cluster_uncertainty_cdr``)."""
 import numpy as np
 from rclpy.serialization import deserialize_message, serialize_message
+from std_msgs.msg import Header
+
+
+def random_header(rng) -> Header:
+    """A header with a random stamp (negative seconds included) and frame_id length."""
+    h = Header(frame_id="f" * int(rng.integers(0, 9)))
+    h.stamp.sec, h.stamp.nanosec = int(rng.integers(-5, 2**31 - 1)), int(rng.integers(0, 10**9))
+    return h
+
+
+def random_version_fields(rng, seed: int) -> dict:
+    """Random version-1 fields; the drift score NaN for even seeds, passthrough unless
+    the seed is a multiple of 3."""
+    return dict(version=1, drift_level=int(rng.integers(0, 6)),
+                drift_score=float(np.float32(rng.uniform())) if seed % 2 else float("nan"),
+                drift_window_frames=int(rng.integers(0, 60)),
+                drift_quantities="q" * int(rng.integers(0, 7)), passthrough=bool(seed % 3))
+
+
+def random_model_ids(rng) -> tuple[str, str]:
+    """Confidence and IoU model ids of random lengths (empty included)."""
+    return "m" * int(rng.integers(0, 9)), "r" * int(rng.integers(0, 9))
 
 
 def decoded_like(data: bytes, want, message_class):
