@@ -209,6 +209,24 @@ def _grid_pairs(p, tab: _BoxTable, normal, cs, out_pt, out_bx):
     out_bx.append(bx)
 
 
+@njit("Tuple((int64[::1], int64[::1]))(int64[::1], int64[::1], int64)", cache=True, nogil=True)
+def _group(keys, values, n):
+    """``(offsets (n + 1,), values grouped by key)``: the values of key ``k`` are
+    ``out[offsets[k]:offsets[k + 1]]``, in their input order (a stable counting sort)."""
+    offsets = np.zeros(n + 1, np.int64)
+    for k in keys:
+        offsets[k + 1] += 1
+    for k in range(n):
+        offsets[k + 1] += offsets[k]
+    fill = offsets[:n].copy()
+    out = np.empty(len(values), np.int64)
+    for i in range(len(values)):
+        k = keys[i]
+        out[fill[k]] = values[i]
+        fill[k] += 1
+    return offsets, out
+
+
 @njit("Tuple((int64[::1], int64[::1], int64[::1]))(int64[::1], int64[::1], int64[::1], "
       "int64[::1], float64, float64, float64, float64, float64[::1], float64[::1], float64[::1], "
       "float64[::1], float64[::1], float64[::1], int64[::1], int64, int64)", cache=True, nogil=True)
@@ -222,7 +240,6 @@ def _cell_table(ix0, ix1, iy0, iy1, x0, y0, cs, tol, cx, cy, c, s, hl, hw, norma
         tot += (ix1[j] - ix0[j] + 1) * (iy1[j] - iy0[j] + 1)
     ent_cell = np.empty(tot, np.int64)
     ent_box = np.empty(tot, np.int64)
-    cnt = np.zeros(ncells, np.int64)
     m = 0
     for j in range(n):
         ce, se = c[j], s[j]
@@ -233,23 +250,11 @@ def _cell_table(ix0, ix1, iy0, iy1, x0, y0, cs, tol, cx, cy, c, s, hl, hw, norma
                 ccy = y0 + (gy + 0.5) * cs - cy[j]
                 if (abs(ce * ccx + se * ccy) <= hl[j] + r
                         and abs(ce * ccy - se * ccx) <= hw[j] + r):
-                    cell = gx * ny + gy
-                    ent_cell[m] = cell
+                    ent_cell[m] = gx * ny + gy
                     ent_box[m] = normal[j]
-                    cnt[cell] += 1
                     m += 1
-    start = np.empty(ncells, np.int64)
-    acc = 0
-    for q in range(ncells):
-        start[q] = acc
-        acc += cnt[q]
-    fill = start.copy()
-    box = np.empty(m, np.int64)
-    for e in range(m):
-        q = ent_cell[e]
-        box[fill[q]] = ent_box[e]
-        fill[q] += 1
-    return start, cnt, box
+    offsets, box = _group(ent_cell[:m], ent_box[:m], ncells)
+    return offsets[:-1].copy(), offsets[1:] - offsets[:-1], box
 
 
 _KERNEL_SIG = ("Tuple((int64[::1], int64[::1]))({f}[:], {f}[:], {f}[:], {f}, {f}, {f}, int64, "
@@ -306,6 +311,7 @@ def _grid_kernel(px, py, pz, x0, y0, inv, nx, ny, cell_start, cell_cnt, cell_box
             k += 1
     return out_pt[:k].copy(), out_bx[:k].copy()
 
+
 def points_in_boxes(points, boxes, margin: float = 0.0):
     """CSR membership ``(offsets (N+1,), point_index int64)``: points of box ``b`` are
     ``point_index[offsets[b]:offsets[b+1]]`` (ascending).
@@ -318,24 +324,7 @@ def points_in_boxes(points, boxes, margin: float = 0.0):
     pt, bx = _inside_pairs(points, boxes, margin)
     # Pairs come out point-major: grouped by box in a stable counting sort, the points of
     # each box stay ascending.
-    return _group_by_box(np.ascontiguousarray(pt, np.int64), np.ascontiguousarray(bx, np.int64),
-                         n)
-
-
-@njit("Tuple((int64[::1], int64[::1]))(int64[::1], int64[::1], int64)", cache=True, nogil=True)
-def _group_by_box(pt, bx, n):
-    offsets = np.zeros(n + 1, np.int64)
-    for b in bx:
-        offsets[b + 1] += 1
-    for b in range(n):
-        offsets[b + 1] += offsets[b]
-    fill = offsets[:n].copy()
-    out = np.empty(len(pt), np.int64)
-    for k in range(len(pt)):
-        b = bx[k]
-        out[fill[b]] = pt[k]
-        fill[b] += 1
-    return offsets, out
+    return _group(np.ascontiguousarray(bx, np.int64), np.ascontiguousarray(pt, np.int64), n)
 
 
 def count_points_in_boxes(points, boxes, margin: float = 0.0) -> np.ndarray:
