@@ -34,6 +34,7 @@ import numpy as np
 from numba import njit, types
 
 from .boxes import DetectionArrays, arrays_from_fields
+from .kernel_types import array_in
 
 __all__ = ["CdrError", "DecodedDetections", "decode_detection_array", "encode_detection_array",
            "rescaled_scores", "encode_detections"]
@@ -215,7 +216,7 @@ def _layout_loop(buf: bytes, words, p: int, n: int):
             hyp_off, cls_at)
 
 
-_U8 = types.Array(types.uint8, 1, "C", readonly=True)
+_U8 = array_in(types.uint8)
 #: more distinct class_id strings than this in one array: grouped by ``_class_codes``
 _MAX_CLASSES = 64
 

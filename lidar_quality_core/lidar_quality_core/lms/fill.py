@@ -27,15 +27,17 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, types
 
+from lidar_quality_core.kernel_types import array_in, array_out
+
 __all__ = ["nearest_source", "fill_image"]
 
 _FAR = 1 << 20  # a vertical distance no image reaches (its square still fits in int64)
-_MASK = types.Array(types.boolean, 2, "C", readonly=True)
-_ROW = types.Array(types.int64, 1, "C")
+_MASK = array_in(types.boolean, 2)
+_ROW = array_out(types.int64)
 
 
-@njit(types.void(types.int64, types.Array(types.boolean, 1, "C", readonly=True), _ROW, _ROW,
-                 _ROW, _ROW), cache=True, nogil=True)
+@njit(types.void(types.int64, array_in(types.boolean), _ROW, _ROW, _ROW, _ROW), cache=True,
+      nogil=True)
 def _finish_row(r, filled, out_row, below, src_row, dist):
     """Row ``r`` of the sweep up (see :func:`_nearest`). Its own function: inlined into
     the sweep's loop this loop is not vectorized (3x slower)."""
@@ -52,8 +54,7 @@ def _finish_row(r, filled, out_row, below, src_row, dist):
         out_row[c] = r * C + c
 
 
-@njit(types.int64(_MASK, types.int64, types.Array(types.int64, 2, "C")),
-      cache=True, nogil=True)
+@njit(types.int64(_MASK, types.int64, array_out(types.int64, 2)), cache=True, nogil=True)
 def _nearest(mask, max_offset, out):
     """:func:`nearest_source` into ``out``, except that empty pixels not resolved within
     ``max_offset`` columns get -1 (left to the EDT); returns how many.

@@ -24,6 +24,8 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, types
 
+from lidar_quality_core.kernel_types import array_in as _in, array_out as _out
+
 __all__ = ["transpose_block", "dispersion_block", "read_sources", "region_sums",
            "segment_features", "point_segments", "N_MEASURES", "N_STATS"]
 
@@ -34,16 +36,6 @@ N_STATS = 10
 
 _F32, _F64, _I32, _I64, _BOOL = (types.float32, types.float64, types.int32, types.int64,
                                  types.boolean)
-
-
-def _in(dtype, ndim=1, layout="C") -> types.Array:
-    """An input array type: read-only, so that read-only arrays (a message's buffer, a
-    caller's frozen array) match it; writable arrays match it too."""
-    return types.Array(dtype, ndim, layout, readonly=True)
-
-
-def _out(dtype, ndim=1) -> types.Array:
-    return types.Array(dtype, ndim, "C")
 
 
 @njit(types.void(_in(_F32, 2), _I64, _out(_F32, 2)), cache=True, nogil=True)

@@ -36,6 +36,8 @@ from typing import Sequence
 import numpy as np
 from numba import njit, types
 
+from lidar_quality_core.kernel_types import array_in as _in, array_out as _out
+
 __all__ = [
     "RangeImageConfig",
     "Projection",
@@ -213,21 +215,12 @@ class Projection:
 # sine pass vectorizes, 4x faster than strided) and widened to float64 per point.
 
 
-def _ro(dtype) -> types.Array:
-    """A read-only contiguous 1-D array type (writable arrays match it too)."""
-    return types.Array(dtype, 1, "C", readonly=True)
-
-
-def _out(dtype) -> types.Array:
-    return types.Array(dtype, 1, "C")
-
-
 _COORDS = (types.float32, types.float64)
 _LUT_MAX = 1 << 14  # most cells of the elevation lookup table
 _DEG = 180.0 / math.pi  # np.degrees' factor
 
 
-@njit([(_ro(t), _ro(t), _ro(t), _out(types.float64)) for t in _COORDS],
+@njit([(_in(t), _in(t), _in(t), _out(types.float64)) for t in _COORDS],
       cache=True, nogil=True)
 def _elevation_sine(x, y, z, out):
     """``clip(z / r, -1, 1)`` per point (``z`` itself where ``r`` is not positive)."""
@@ -238,8 +231,8 @@ def _elevation_sine(x, y, z, out):
         out[i] = min(max(s, -1.0), 1.0)
 
 
-@njit([(_ro(t), _ro(t), _ro(t), _ro(types.int64), _ro(types.float64),
-        _ro(types.float64), _ro(types.int64), types.float64, _ro(types.float64),
+@njit([(_in(t), _in(t), _in(t), _in(types.int64), _in(types.float64),
+        _in(types.float64), _in(types.int64), types.float64, _in(types.float64),
         types.int64, types.int64, types.float64, types.float64, _out(types.int32),
         _out(types.int32), _out(types.int64), _out(types.float32), _out(types.boolean),
         _out(types.boolean), _out(types.int32))

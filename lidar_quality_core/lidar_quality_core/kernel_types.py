@@ -1,0 +1,21 @@
+"""Array types for the explicit signatures of the package's compiled kernels (numba).
+
+A kernel compiled for :func:`array_in` arguments accepts read-only arrays (a message's
+buffer, a caller's frozen array) as well as writable ones; :func:`array_out` is for the
+arrays it writes.
+"""
+from __future__ import annotations
+
+from numba import types
+
+__all__ = ["array_in", "array_out"]
+
+
+def array_in(dtype, ndim: int = 1, layout: str = "C") -> types.Array:
+    """An input array type: read-only, so that read-only and writable arrays match it."""
+    return types.Array(dtype, ndim, layout, readonly=True)
+
+
+def array_out(dtype, ndim: int = 1) -> types.Array:
+    """An output array type: writable, C-contiguous."""
+    return types.Array(dtype, ndim, "C")
