@@ -13,7 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+
+from .kernel_types import array_in, array_out
 
 BOX_COLUMNS = ("x", "y", "z", "l", "w", "h", "yaw")
 #: |roll| or |pitch| above this [deg] is reported: float32 quaternions of upright boxes
@@ -21,16 +23,36 @@ BOX_COLUMNS = ("x", "y", "z", "l", "w", "h", "yaw")
 TILT_TOLERANCE_DEG = 1.0
 
 
+@njit(types.Tuple((array_out(types.float64, 2), array_out(types.float64, 2),
+                    array_out(types.float64)))(array_in(types.float64, 2, "A")),
+      cache=True, nogil=True, error_model="numpy")
+def _rpy_terms(q):
+    """Arguments of ``quaternion_to_rpy``'s three functions, in one pass: the normalised
+    quaternion's ``(y, x)`` of roll and yaw (rows 0, 1) and the clipped sine of pitch; the
+    same operations in the same order as numpy's (``np.linalg.norm``: ((x² + y²) + z²)
+    + w²), so the angles are bit for bit what the numpy expressions gave."""
+    n = q.shape[0]
+    num, den, sine = np.empty((2, n)), np.empty((2, n)), np.empty(n)
+    for i in range(n):
+        norm = np.sqrt(((q[i, 0] * q[i, 0] + q[i, 1] * q[i, 1]) + q[i, 2] * q[i, 2])
+                       + q[i, 3] * q[i, 3])
+        x, y, z, w = q[i, 0] / norm, q[i, 1] / norm, q[i, 2] / norm, q[i, 3] / norm
+        num[0, i], den[0, i] = 2 * (w * x + y * z), 1 - 2 * (x * x + y * y)
+        num[1, i], den[1, i] = 2 * (w * z + x * y), 1 - 2 * (y * y + z * z)
+        v = 2 * (w * y - z * x)
+        sine[i] = 1.0 if v > 1.0 else (-1.0 if v < -1.0 else v)  # NaN stays NaN
+    return num, den, sine
+
+
 def quaternion_to_rpy(q: np.ndarray) -> np.ndarray:
     """(N, 4) quaternions ``x, y, z, w`` (any norm > 0) -> (N, 3) roll, pitch, yaw (ZYX)."""
     q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        x, y, z, w = (q / norm).T
-    roll = np.arctan2(2 * (w * x + y * z), 1 - 2 * (x * x + y * y))
-    pitch = np.arcsin(np.clip(2 * (w * y - z * x), -1.0, 1.0))
-    yaw = np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
-    return np.stack([roll, pitch, yaw], axis=1)
+    num, den, sine = _rpy_terms(q)
+    out = np.empty((len(q), 3))
+    # numpy's arctan2 / arcsin (one call each): the angles stay those of its libm
+    roll_yaw = np.arctan2(num, den)
+    out[:, 0], out[:, 1], out[:, 2] = roll_yaw[0], np.arcsin(sine), roll_yaw[1]
+    return out
 
 
 def yaw_to_quaternion(yaw: np.ndarray) -> np.ndarray:

@@ -34,7 +34,7 @@ import numpy as np
 from numba import njit, types
 
 from .boxes import DetectionArrays, arrays_from_fields
-from .kernel_types import array_in
+from .kernel_types import array_in, array_out
 
 __all__ = ["CdrError", "DecodedDetections", "decode_detection_array", "encode_detection_array",
            "rescaled_scores", "encode_detections"]
@@ -316,6 +316,50 @@ def _walk(raw, p, n):
             first_at[:n_names])
 
 
+@njit(types.float64(_U8, types.int64, array_out(types.uint64)), cache=True, nogil=True)
+def _f64(raw, at, scratch):
+    """The little-endian float64 at byte ``at`` (its bits through ``scratch``, one uint64
+    whose float64 view is read: NaN payloads kept, any host byte order)."""
+    bits = np.uint64(0)
+    for b in range(8):
+        bits |= np.uint64(raw[at + b]) << np.uint64(8 * b)
+    scratch[0] = bits
+    return scratch.view(np.float64)[0]
+
+
+_I64 = array_in(types.int64)
+
+
+@njit(types.Tuple((array_out(types.float64, 2), array_out(types.int64), array_out(types.float64),
+                   array_out(types.int64)))(_U8, _I64, _I64, _I64, _I64),
+      cache=True, nogil=True)
+def _fields(raw, bbox_at, cls_at, cls_len, hyp_off):
+    """The fixed-size fields at the offsets ``_walk`` found, in one pass: per detection
+    its centre, size and quaternion (n, 10: the order ``boxes.arrays_from_fields``
+    takes); per hypothesis the offset of its score (the string's end, 8-aligned relative
+    to byte 4), the score and the owning detection."""
+    n, h = bbox_at.shape[0], cls_at.shape[0]
+    scratch = np.empty(1, np.uint64)
+    box = np.empty((n, 10))
+    for i in range(n):
+        a = bbox_at[i]  # centre position (3), orientation (4), size (3)
+        for k in range(3):
+            box[i, k] = _f64(raw, a + 8 * k, scratch)
+            box[i, 3 + k] = _f64(raw, a + 56 + 8 * k, scratch)
+        for k in range(4):
+            box[i, 6 + k] = _f64(raw, a + 24 + 8 * k, scratch)
+    score_at = np.empty(h, np.int64)
+    score = np.empty(h)
+    for j in range(h):
+        q = cls_at[j] + 4 + cls_len[j]
+        score_at[j] = q + (-(q - 4)) % 8
+        score[j] = _f64(raw, score_at[j], scratch)
+    det = np.empty(h, np.int64)
+    for i in range(n):
+        det[hyp_off[i]:hyp_off[i + 1]] = i
+    return box, score_at, score, det
+
+
 def decode_detection_array(data) -> DecodedDetections:
     """Decode serialized Detection3DArray bytes (``CdrError`` when they are not one)."""
     # a Detection3D takes > 100 bytes
@@ -343,18 +387,12 @@ def decode_detection_array(data) -> DecodedDetections:
         raise CdrError(f"an id is not UTF-8: {exc}") from None
     if len(lengths) and lengths.min() == 0:
         raise CdrError(f"bad string at byte {int(cls_at[np.argmin(lengths)])}: length 0")
-    q = cls_at + 4 + lengths
-    score_at = q + (-(q - 4) % 8)
-    hyp_sc = _gather(raw_bytes, score_at, 8).view(f.dtype).reshape(-1).astype(np.float64)
+    raw, score_at, hyp_sc, hyp_det = _fields(raw_bytes, bbox_at, cls_at, lengths, hyp_off)
     if ok == 1:
         u32 = f.u32
         names = [_string(buf, a, u32, len(buf))[0] for a in first_at.tolist()]
     else:
         codes, names = _class_codes(buf, raw_bytes, cls_at, lengths)
-    # centre position (3), orientation (4), size (3) -> centre, size, quaternion
-    bb = _gather(raw_bytes, bbox_at, 80).view(f.dtype).reshape(n, 10).astype(np.float64)
-    raw = np.concatenate([bb[:, :3], bb[:, 7:10], bb[:, 3:7]], axis=1)
-    hyp_det = np.repeat(np.arange(n), np.diff(hyp_off))
     return DecodedDetections(
         header=h, arrays=arrays_from_fields(raw, ids, hyp_det, (codes, names), hyp_sc),
         data=buf, endian=e, det_spans=np.asarray(spans, dtype=np.int64).reshape(n, 2),
