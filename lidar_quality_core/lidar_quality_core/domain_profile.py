@@ -351,11 +351,12 @@ class DriftMonitor:
         self._values: deque = deque()
         self._total = np.zeros((len(self._names), N_FINE + 1))
 
-    def add(self, values) -> DriftReport:
+    def add(self, values, *, explain: bool = True) -> DriftReport:
         """``values``: ``{quantity: values}``, ``(names, X)`` for the columns of one
         (rows, quantities) matrix (lms_node's 114 metrics of ~2000 segments: not split
         into columns and stacked again), or a list of such ``(names, X)`` (LMD: the
-        boxes' features and scores, and the frame's point count)."""
+        boxes' features and scores, and the frame's point count). ``explain`` False:
+        the report's ``text`` is left empty (:meth:`words` gives it on demand)."""
         counts = np.zeros_like(self._total)
         if isinstance(values, tuple):
             values = [values]
@@ -396,9 +397,14 @@ class DriftMonitor:
         score = ranked[0][1] if ranked else 0.0
         level = ERROR if score >= self.error else WARN if score >= self.warn else OK
         drifted = [(k, round(v, 4)) for k, v in ranked[:self.top] if v >= self.warn]
-        text = "; ".join(explain(k, self.profile.quantities[k], np.concatenate(
-            [f[k] for f in self._values if k in f])) for k, _ in drifted)
+        text = self.words(drifted) if explain else ""
         return DriftReport(float(score), level, drifted, text, len(self._counts), len(scored))
+
+    def words(self, drifted) -> str:
+        """The ``drifted`` quantities (``(name, PSI)`` pairs) in words over the current
+        window (:func:`explain`: their live medians against training)."""
+        return "; ".join(explain(k, self.profile.quantities[k], np.concatenate(
+            [f[k] for f in self._values if k in f])) for k, _ in drifted)
 
 
 # ------------------------------------------------------------------ in the nodes
@@ -468,7 +474,17 @@ class DomainVerdict:
 
 class DomainCheck:
     """A processor's drift monitor over its models' profile (None: the models record no
-    profile, and each frame says so in its values)."""
+    profile, and each frame says so in its values).
+
+    The warning's words (the drifted quantities' live medians over the window, the most
+    expensive part of a drifted frame's check: medians of up to 50 frames' values) are
+    rebuilt when the level or the drifted quantities change, and otherwise every
+    ``WORDS_EVERY`` frames; score, level and quantities are every frame's. A node shows
+    the words at most once per /diagnostics period and logs them at most once per warning
+    period, so an out-of-domain stream no longer pays the medians on every frame."""
+
+    #: frames between two rebuilds of unchanged warning words (1 s at 10 Hz)
+    WORDS_EVERY = 10
 
     def __init__(self, profile: DomainProfile | None, params: DriftParameters | None = None):
         p = params or DriftParameters()
@@ -482,12 +498,22 @@ class DomainCheck:
         p = self._params
         self.monitor = None if self._profile is None else DriftMonitor(
             self._profile, window=p.drift_window, warn=p.drift_warn, error=p.drift_error)
+        self._words, self._words_of, self._words_age = "", None, 0
 
     def __call__(self, quantities) -> DomainVerdict:
         if self.monitor is None:
             return DomainVerdict({"drift": "off: the models record no training-data profile "
                                            "(trained before profiles; retrain to monitor)"})
-        r = self.monitor.add(quantities)
+        r = self.monitor.add(quantities, explain=False)
+        if r.level >= WARN:
+            of = (r.level, tuple(k for k, _ in r.drifted))
+            self._words_age += 1
+            if of != self._words_of or self._words_age >= self.WORDS_EVERY:
+                self._words, self._words_of, self._words_age = (
+                    self.monitor.words(r.drifted), of, 0)
+            r.text = self._words
+        else:
+            self._words_of = None
         scored = r.scored > 0       # else: too few frames, or too few values of each quantity
         # as the quality messages say it: no score (not a 0) while the window fills
         values = {"drift.level": LEVEL_NAMES[r.level] if scored else "warming up",

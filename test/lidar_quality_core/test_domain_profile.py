@@ -182,6 +182,46 @@ def test_domain_check_verdict_as_the_quality_messages_carry_it():
             c.DRIFT_ERROR) == (0, 1, 2, 3, 4, 5)
 
 
+def test_check_rebuilds_its_words_on_change_and_every_words_every_frames():
+    """DomainCheck's warning words: rebuilt (as DriftMonitor.add words them) on the first
+    drifted frame, whenever the level or the drifted quantities change, and every
+    WORDS_EVERY frames; in between the last words stand. Score, level and quantities
+    are every frame's, as a monitor's that words every frame."""
+    from lidar_quality_core.domain_profile import WARN, DomainCheck, DriftParameters
+
+    rng = np.random.default_rng(11)
+    train = {"a": rng.normal(size=3000), "b": rng.normal(size=3000)}
+    prof = DomainProfile.of(train, {k: np.repeat(np.arange(6), 500) for k in train})
+    params = DriftParameters(drift_window=20)
+    check, every_frame = DomainCheck(prof, params), DriftMonitor(prof, window=20)
+    words, rebuilt_at, last, stale = None, [], None, 0
+    for k in range(60):
+        # "a" drifts further every frame (its median moves); "b" joins from frame 30
+        frame = {"a": rng.normal(0.1 * k, 1.0, 40), "b": rng.normal(3.0 * (k >= 30), 1.0, 40)}
+        v = check(frame)
+        r = every_frame.add(frame)
+        assert (v.state, v.quantities) == (("warming up" if not r.scored else
+                                             ("OK", "WARN", "ERROR")[r.level]),
+                                            tuple(q for q, _ in r.drifted))
+        if r.level < WARN:
+            assert v.issue is None
+            last = None
+            continue
+        of = (r.level, tuple(q for q, _ in r.drifted))
+        text = v.issue.split("frames): ", 1)[1]
+        if of != last or k - rebuilt_at[-1] >= DomainCheck.WORDS_EVERY:
+            assert text == r.text          # rebuilt: this frame's words
+            rebuilt_at.append(k)
+            words = text
+        else:
+            assert text == words           # unchanged since the last rebuild
+            stale += text != r.text        # while the frame's own words moved on
+        last = of
+    assert len(rebuilt_at) >= 4 and any(b - a == DomainCheck.WORDS_EVERY
+                                        for a, b in zip(rebuilt_at, rebuilt_at[1:]))
+    assert stale > 0
+
+
 def test_monitor_reads_a_matrix_as_its_columns():
     """``add((names, X))`` (lms_node's metrics) scores and words as ``add`` of the columns,
     a column the profile does not know left out."""
