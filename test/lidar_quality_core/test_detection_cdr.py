@@ -99,6 +99,20 @@ def test_encode_subset_with_new_scores_equals_rclpy(seed):
     assert_arrays_equal(again.arrays, dec.arrays)
 
 
+def test_encode_refuses_rows_and_scores_it_cannot_write():
+    """The compiled writer reads where the rows point: a row outside the array or a
+    score vector of another length is an error, not a read past the message."""
+    dec = decode_detection_array(serialize_message(random_array(3)))
+    n, h = len(dec), len(dec.hyp_score)
+    for rows in ([n], [-1], [0, n + 5]):
+        with pytest.raises(IndexError):
+            encode_detection_array(dec, rows)
+    with pytest.raises(ValueError):
+        encode_detection_array(dec, [0], np.zeros(h + 1))
+    assert encode_detection_array(dec, [n - 1, 0]) == encode_detection_array(
+        dec, np.array([n - 1, 0], np.int32))
+
+
 def test_empty_array():
     dec = decode_detection_array(serialize_message(Detection3DArray()))
     assert len(dec) == 0 and dec.arrays.boxes.shape == (0, 7)
