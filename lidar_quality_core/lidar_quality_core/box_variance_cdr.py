@@ -2,7 +2,8 @@
 
 Why: rclpy builds one BoxVariance object per entry (~2 µs each plus the conversion); a
 100-box head's variances took ~0.2 ms to deserialize, twice per mimo_node frame. Read
-here they take one loop over the entries (offsets) and one gather.
+here they take one compiled pass over the entries (offsets and values; 0.07 -> 0.02 ms)
+and the ids' decoding.
 
 Layout (plain little-endian CDR, ``00 01``; alignment relative to byte 4): header (stamp,
 frame_id), entry count; per entry: detection_index uint32, detection_id string, then x,
@@ -14,8 +15,10 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numba import njit, types
 
-from .detection_cdr import CdrError, _gather, open_array
+from .detection_cdr import CdrError, _f64, _u32, open_array
+from .kernel_types import array_in, array_out
 
 __all__ = ["DecodedVariances", "decode_box_variance_array"]
 
@@ -34,32 +37,46 @@ class DecodedVariances:
         return len(self.ids)
 
 
+@njit(types.Tuple((types.boolean, array_out(types.int64), array_out(types.int64),
+                    array_out(types.int64), array_out(types.float64, 2)))(
+    array_in(types.uint8), types.int64, types.int64), cache=True, nogil=True)
+def _walk(raw, p, n):
+    """``(ok, detection_index, id offset, id length, values (n, 7))`` of the ``n``
+    entries from offset ``p``; ok False: the bytes end before the entries do."""
+    end = raw.shape[0]
+    index = np.empty(n, np.int64)
+    id_at = np.empty(n, np.int64)
+    id_len = np.empty(n, np.int64)
+    values = np.empty((n, 7))
+    scratch = np.empty(1, np.uint64)
+    for i in range(n):
+        p += (-p) % 4
+        if p + 8 > end:
+            return False, index, id_at, id_len, values
+        index[i] = _u32(raw, p)
+        length = _u32(raw, p + 4)
+        if p + 8 + length > end:
+            return False, index, id_at, id_len, values
+        id_at[i], id_len[i] = p + 8, max(length - 1, 0)  # 0: no NUL, read as ""
+        q = p + 8 + length
+        p = q + (-(q - 4)) % 8
+        if p + 56 > end:
+            return False, index, id_at, id_len, values
+        for k in range(7):
+            values[i, k] = _f64(raw, p + 8 * k, scratch)
+        p += 56
+    return True, index, id_at, id_len, values
+
+
 def decode_box_variance_array(data) -> DecodedVariances:
     """Decode serialized BoxVarianceArray bytes (``CdrError`` when they are not one)."""
     # an entry takes >= 64 bytes
-    buf, words, h, n, p = open_array(data, "BoxVarianceArray", "variance entries", 64)
-    end = len(buf)
-    index, ids, values_at = [], [], []
+    buf, _, h, n, p = open_array(data, "BoxVarianceArray", "variance entries", 64)
+    ok, index, id_at, id_len, values = _walk(np.frombuffer(buf, np.uint8), p, n)
+    if not ok:
+        raise CdrError(f"truncated BoxVarianceArray ({len(buf)} bytes)")
     try:
-        for _ in range(n):
-            p += -p % 4
-            index.append(words[p >> 2])
-            q = p + 8 + words[(p + 4) >> 2]
-            if q > end:
-                raise CdrError(f"bad string at byte {p + 4}")
-            ids.append(buf[p + 8:q - 1])
-            p = q + (-(q - 4) % 8)
-            values_at.append(p)
-            p += 56
-    except IndexError as exc:
-        raise CdrError(f"truncated BoxVarianceArray ({end} bytes): {exc}") from None
-    if p > end:
-        raise CdrError(f"truncated BoxVarianceArray: {end} bytes, need {p}")
-    try:
-        ids = [b.decode("utf-8") for b in ids]
+        ids = [buf[a:a + m].decode("utf-8") for a, m in zip(id_at.tolist(), id_len.tolist())]
     except UnicodeDecodeError as exc:
         raise CdrError(f"a detection_id is not UTF-8: {exc}") from None
-    at = np.asarray(values_at, dtype=np.int64)
-    values = _gather(np.frombuffer(buf, np.uint8), at, 56).view("<f8").reshape(n, 7)
-    return DecodedVariances(h, np.asarray(index, dtype=np.int64), ids,
-                            values.astype(np.float64))
+    return DecodedVariances(h, index, ids, values)
