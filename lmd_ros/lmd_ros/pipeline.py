@@ -70,7 +70,7 @@ from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import check_fields, group, param
-from lidar_quality_core.pointcloud import CloudFormatError, PaddingNote, padding_mask, xyz_intensity
+from lidar_quality_core.pointcloud import CloudFormatError, PaddingNote, blank_padding, xyz_intensity
 from lidar_quality_core.thresholds import (ConfidenceThresholds, class_thresholds_param,
                                            range_thresholds_param)
 from lidar_quality_core.transforms import Transform, input_transforms, transform_tolerance_param
@@ -255,16 +255,6 @@ def _score_note(topic: str, arr: DetectionArrays, bad: np.ndarray, effect: str) 
             f"({s.min():.6g} .. {s.max():.6g}; the meta models take probabilities): {effect}")
 
 
-def _n_finite(xyz: np.ndarray, inten: np.ndarray) -> int:
-    # A finite sum proves every value finite (the common case, one pass per array).
-    if np.isfinite(np.sum(xyz)) and np.isfinite(np.sum(inten)):
-        return len(xyz)
-    ok = np.isfinite(inten)
-    for c in range(3):
-        ok &= np.isfinite(xyz[:, c])
-    return int(np.count_nonzero(ok))
-
-
 def _exact_nms(props: DetectionArrays, settings: LmdSettings):
     """(keep, suppressed_by) over all proposals; invalid ones take no part."""
     return nms_preimages(props.boxes, props.scores, props.valid, settings.nms_iou_threshold,
@@ -320,12 +310,9 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
                                "i): the reflectance features need it")
     scale = intensity if intensity is not None else IntensityScale(settings.intensity_scale)
     inten = scale.scale(inten)
-    # exact (0, 0, 0): an organized cloud's no-return padding, not a point (NaN stays truthy)
-    padding = padding_mask(xyz)
-    n_padding = int(np.count_nonzero(padding))
-    if n_padding:
-        xyz = xyz.copy()
-        xyz[padding] = np.nan
+    # exact (0, 0, 0): an organized cloud's no-return padding, not a point (NaN stays truthy);
+    # xyz is the cloud's decoded copy: blanked in place
+    n_padding, n_finite = blank_padding(xyz, inten)
     if mode != "none" and proposals_msg is None:
         raise ValueError(f'proposal mode "{mode}" needs the proposals')
     transforms = transforms or {}
@@ -387,7 +374,7 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
     if moved_notes:
         issues["transform"] = "; ".join(moved_notes)
     moved = ("input/proposals" if mode == "exact" else "input/detections") in transforms
-    return LmdFrame(dets, _messages(source, rows), X, valid, _n_finite(xyz, inten),
+    return LmdFrame(dets, _messages(source, rows), X, valid, n_finite,
                     source.header, source, rows, issues,
                     cloud_msg.header if moved else source.header, len(xyz), n_padding)
 

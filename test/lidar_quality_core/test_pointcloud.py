@@ -774,6 +774,34 @@ def test_valid_points_excludes_non_finite_and_zero_padding():
         pc.valid_points(np.zeros((4, 2)))
 
 
+@pytest.mark.parametrize("seed", range(6))
+def test_blank_padding_is_the_mask_and_the_finite_count(seed):
+    """blank_padding against its numpy statement: padding rows (either zero sign) become
+    NaN, nothing else changes; the count of finite points is taken afterwards, intensity
+    included."""
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(0, 3000))
+    xyz = rng.normal(size=(n, 3)).astype(np.float32)
+    inten = rng.random(n).astype(np.float32)
+    for frac, value in ((0.2, 0.0), (0.05, -0.0), (0.05, np.nan), (0.03, np.inf)):
+        rows = rng.random(n) < frac
+        cols = rng.random((n, 3)) < (0.5 if value in (np.nan, np.inf) else 1.0)
+        xyz[rows[:, None] & cols] = value
+    inten[rng.random(n) < 0.05] = np.nan
+    want = xyz.copy()
+    pad = pc.padding_mask(want)
+    want[pad] = np.nan
+    n_finite = int((finite_mask(want) & np.isfinite(inten)).sum())
+    got = pc.blank_padding(xyz, inten if seed % 2 else inten.astype(np.float64))
+    assert got == (int(pad.sum()), n_finite)
+    np.testing.assert_array_equal(xyz, want)     # NaN where NaN, same bits elsewhere
+    for bad in (xyz[:, :2], xyz.astype(np.float64), np.asfortranarray(xyz)):
+        with pytest.raises(ValueError):
+            pc.blank_padding(bad, inten)
+    with pytest.raises(ValueError, match="intensities"):
+        pc.blank_padding(xyz, inten[:-1] if n else np.zeros(1, np.float32))
+
+
 def test_valid_points_of_an_organized_cloud():
     # an Ouster-style organized cloud: no-return pixels are (0, 0, 0)
     grid = np.zeros((4, 8), dtype=[("x", "f4"), ("y", "f4"), ("z", "f4")])
