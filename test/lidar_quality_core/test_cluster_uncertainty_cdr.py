@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from lidar_quality_core.cluster_uncertainty_cdr import encode_cluster_uncertainty_array
 from lidar_quality_msgs.msg import ClusterUncertainty, ClusterUncertaintyArray
-from quality_arrays import (decoded_like, random_header, random_model_ids,
+from quality_arrays import (assert_entries_equal, decoded_like, random_header, random_model_ids,
                             random_version_fields)
 
 FIGURES = ("shannon_entropy", "aleatoric_entropy", "mutual_information",
@@ -40,8 +40,6 @@ def test_bytes_are_the_message(seed, n):
     want = _message(*args, **fields)
     got = decoded_like(data, want, ClusterUncertaintyArray)
     assert len(got.clusters) == n
-    for a, b in zip(got.clusters, want.clusters):   # NaN != NaN: field by field
-        assert (a.detection_index, a.detection_id, a.class_id, a.cluster_size) == (
-            b.detection_index, b.detection_id, b.class_id, b.cluster_size)
-        np.testing.assert_array_equal([getattr(a, k) for k in FIGURES],
-                                      [getattr(b, k) for k in FIGURES])
+    assert_entries_equal(got.clusters, want.clusters,
+                         ("detection_index", "detection_id", "class_id", "cluster_size"),
+                         FIGURES)

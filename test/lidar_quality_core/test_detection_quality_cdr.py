@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from lidar_quality_core.detection_quality_cdr import encode_detection_quality_array
 from lidar_quality_msgs.msg import DetectionQuality, DetectionQualityArray
-from quality_arrays import (decoded_like, random_header, random_model_ids,
+from quality_arrays import (assert_entries_equal, decoded_like, random_header, random_model_ids,
                             random_version_fields)
 
 FIGURES = ("original_score", "confidence", "predicted_iou")
@@ -37,8 +37,5 @@ def test_bytes_are_the_message(seed, n):
     want = _message(*args, **fields)
     got = decoded_like(data, want, DetectionQualityArray)
     assert len(got.detections) == n
-    for a, b in zip(got.detections, want.detections):   # NaN != NaN: field by field
-        assert (a.detection_index, a.detection_id, a.class_id) == (
-            b.detection_index, b.detection_id, b.class_id)
-        np.testing.assert_array_equal([getattr(a, k) for k in FIGURES],
-                                      [getattr(b, k) for k in FIGURES])
+    assert_entries_equal(got.detections, want.detections,
+                         ("detection_index", "detection_id", "class_id"), FIGURES)

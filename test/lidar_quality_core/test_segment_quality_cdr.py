@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 from lidar_quality_core.segment_quality_cdr import encode_segment_quality_array
 from lidar_quality_msgs.msg import SegmentQuality, SegmentQualityArray
-from quality_arrays import (decoded_like, random_header, random_model_ids,
+from quality_arrays import (assert_entries_equal, decoded_like, random_header, random_model_ids,
                             random_version_fields)
 
 
@@ -37,9 +37,6 @@ def test_bytes_are_the_message(seed, n):
     want = _message(*args, **fields)
     got = decoded_like(data, want, SegmentQualityArray)
     assert len(got.segments) == n
-    for a, b in zip(got.segments, want.segments):   # NaN != NaN: field by field
-        assert (a.segment_id, a.class_index, a.class_name, a.point_count,
-                a.projected_point_count) == (b.segment_id, b.class_index, b.class_name,
-                                             b.point_count, b.projected_point_count)
-        np.testing.assert_array_equal([a.confidence, a.predicted_iou],
-                                      [b.confidence, b.predicted_iou])
+    assert_entries_equal(got.segments, want.segments,
+                         ("segment_id", "class_index", "class_name", "point_count",
+                          "projected_point_count"), ("confidence", "predicted_iou"))

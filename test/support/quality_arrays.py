@@ -40,3 +40,13 @@ def decoded_like(data: bytes, want, message_class):
         assert getattr(got, k) == getattr(want, k), k
     np.testing.assert_array_equal(got.drift_score, want.drift_score)
     return got
+
+
+def assert_entries_equal(got, want, exact, figures) -> None:
+    """Entries of a decoded quality array against the message's: the ``exact`` fields
+    equal, the float ``figures`` equal with NaN equal to NaN (field by field)."""
+    assert len(got) == len(want)
+    for a, b in zip(got, want):
+        assert tuple(getattr(a, k) for k in exact) == tuple(getattr(b, k) for k in exact)
+        np.testing.assert_array_equal([getattr(a, k) for k in figures],
+                                      [getattr(b, k) for k in figures])
