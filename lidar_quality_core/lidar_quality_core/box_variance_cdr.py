@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, types
 
-from .detection_cdr import CdrError, _f64, _u32, open_array
+from .detection_cdr import CdrError, _aligned, _f64, _u32, open_array
 from .kernel_types import array_in, array_out
 
 __all__ = ["DecodedVariances", "decode_box_variance_array"]
@@ -50,7 +50,7 @@ def _walk(raw, p, n):
     values = np.empty((n, 7))
     scratch = np.empty(1, np.uint64)
     for i in range(n):
-        p += (-p) % 4
+        p = _aligned(p, 4)
         if p + 8 > end:
             return False, index, id_at, id_len, values
         index[i] = _u32(raw, p)
@@ -58,8 +58,7 @@ def _walk(raw, p, n):
         if p + 8 + length > end:
             return False, index, id_at, id_len, values
         id_at[i], id_len[i] = p + 8, max(length - 1, 0)  # 0: no NUL, read as ""
-        q = p + 8 + length
-        p = q + (-(q - 4)) % 8
+        p = _aligned(p + 8 + length, 8)
         if p + 56 > end:
             return False, index, id_at, id_len, values
         for k in range(7):

@@ -53,8 +53,6 @@ class _Fmt:
     def __init__(self, e: str):
         self.u32 = struct.Struct(e + "I")
         self.stamp = struct.Struct(e + "iI")
-        self.f64 = struct.Struct(e + "d")
-        self.dtype = np.dtype(e + "f8")
 
 
 _FMTS = {e: _Fmt(e) for e in _ENCAPS.values()}
@@ -318,6 +316,13 @@ def _walk(raw, p, n):
 
 
 @njit(inline="always")
+def _aligned(p, k):
+    """Offset ``p`` moved up to a multiple of ``k`` relative to byte 4 (the end of the
+    encapsulation header, where CDR alignment starts)."""
+    return p + (-(p - 4)) % k
+
+
+@njit(inline="always")
 def _f64(raw, at, scratch):
     """The little-endian float64 at byte ``at`` (its bits through ``scratch``, one uint64
     whose float64 view is read: NaN payloads kept, any host byte order)."""
@@ -352,8 +357,7 @@ def _fields(raw, bbox_at, cls_at, cls_len, hyp_off):
     score_at = np.empty(h, np.int64)
     score = np.empty(h)
     for j in range(h):
-        q = cls_at[j] + 4 + cls_len[j]
-        score_at[j] = q + (-(q - 4)) % 8
+        score_at[j] = _aligned(cls_at[j] + 4 + cls_len[j], 8)
         score[j] = _f64(raw, score_at[j], scratch)
     det = np.empty(h, np.int64)
     for i in range(n):
@@ -443,6 +447,16 @@ def _copy(out, at, raw, start, m):
 
 
 @njit(inline="always")
+def _copy_string(out, p, raw, at, write):
+    """The CDR string entry at ``raw[at]`` (uint32 length, bytes) copied to ``out[p]``
+    when ``write``; returns the offset after it."""
+    m = 4 + _u32(raw, at)
+    if write:
+        _copy(out, p, raw, at, m)
+    return p + m
+
+
+@njit(inline="always")
 def _put_u32(out, at, value):
     """Write ``value`` as a little-endian uint32 at byte ``at``."""
     for b in range(4):
@@ -475,37 +489,25 @@ def _reencode(raw, opening, rows, spans, hyp_off, cls_at, score_at, score, bbox_
         scratch = np.empty(1, np.float64)
         p = opening.shape[0]
         for i in rows:
-            p += (-(p - 4)) % 4
+            p = _aligned(p, 4)
             m = spans[i, 1] - spans[i, 0]  # header: 4-aligned fields only
             if write:
                 _copy(out, p, raw, spans[i, 0], m)
-            p += m
-            p += (-(p - 4)) % 4
+            p = _aligned(p + m, 4)
             if write:
                 _copy(out, p, raw, spans[i, 1], 4)
             p += 4
             for j in range(hyp_off[i], hyp_off[i + 1]):
-                p += (-(p - 4)) % 4
-                c = cls_at[j]
-                m = 4 + _u32(raw, c)
-                if write:
-                    _copy(out, p, raw, c, m)
-                p += m
-                p += (-(p - 4)) % 8
+                p = _copy_string(out, _aligned(p, 4), raw, cls_at[j], write)
+                p = _aligned(p, 8)
                 if write:
                     _put_f64(out, p, score[j], scratch)
                     _copy(out, p + 8, raw, score_at[j] + 8, 8 * (_N_HYP_DOUBLES - 1))
                 p += 8 * _N_HYP_DOUBLES
-            p += (-(p - 4)) % 8
+            p = _aligned(p, 8)
             if write:
                 _copy(out, p, raw, bbox_at[i], 80)
-            p += 80
-            p += (-(p - 4)) % 4
-            a = id_at[i]
-            m = 4 + _u32(raw, a)
-            if write:
-                _copy(out, p, raw, a, m)
-            p += m
+            p = _copy_string(out, _aligned(p + 80, 4), raw, id_at[i], write)
         size = p
     return out
 
@@ -549,7 +551,7 @@ def _write_detections(hdr, names, name_at, ids, id_at, counts, order, S, pose_co
             _put_u32(out, p, n)
         p += 4
         for i in range(n):
-            p += (-(p - 4)) % 4
+            p = _aligned(p, 4)
             if write:
                 _copy(out, p, hdr, 0, hdr.shape[0])
             p += hdr.shape[0]
@@ -558,17 +560,16 @@ def _write_detections(hdr, names, name_at, ids, id_at, counts, order, S, pose_co
             p += 4
             for k in range(counts[i]):
                 c = order[i, k]
-                p += (-(p - 4)) % 4
+                p = _aligned(p, 4)
                 m = name_at[c + 1] - name_at[c]
                 if write:
                     _copy(out, p, names, name_at[c], m)
-                p += m
-                p += (-(p - 4)) % 8
+                p = _aligned(p + m, 8)
                 if write:
                     _put_f64(out, p, S[i, c], scratch)
                     _copy(out, p + 8, pose_cov, 344 * i, 344)
                 p += 352
-            p += (-(p - 4)) % 8
+            p = _aligned(p, 8)
             if write:
                 _copy(out, p, bbox, 80 * i, 80)
             p += 80  # 80 bytes after an 8-aligned offset: the id's count is 4-aligned
