@@ -40,6 +40,7 @@ from .diagnostics import NodeDiagnostics
 from .params import declare_spec
 from .qos import output_qos
 from .synced_inputs import SyncedInputs
+from .threads import realtime_scheduling
 from .tf_listener import TfListener
 
 _LEVEL = {0: DiagnosticStatus.OK, 1: DiagnosticStatus.WARN, 2: DiagnosticStatus.ERROR}
@@ -75,6 +76,12 @@ class CommonParameters:
         0.0, "Processing time per frame [ms] (median of the last 50 frames) above which "
         "/diagnostics reports ERROR (0: off; >= processing_warn_ms when both are set).",
         min_value=0.0)
+    realtime_priority: int = param(
+        0, "SCHED_FIFO priority (1-99) for all of the node's threads once it has subscribed, "
+        "so that a frame takes a core at once on a loaded machine instead of waiting behind "
+        "other processes (Linux; needs CAP_SYS_NICE or an rtprio limit, `ulimit -r`). "
+        "Refused: normal scheduling and a standing WARN in /diagnostics. 0: normal "
+        "scheduling.", min_value=0, max_value=99)
 
     def validate(self) -> None:
         if self.drop_error_fraction < self.drop_warn_fraction:
@@ -156,6 +163,7 @@ class QualityNode(Node):
         self.add_on_set_parameters_callback(self._on_set_parameters)
         c = self.declare_settings(CommonParameters)
         self.input_timeout, self.input_error_timeout = c.input_timeout, c.input_error_timeout
+        self.realtime_priority = c.realtime_priority
         self.diag = NodeDiagnostics(self, period_s=c.diagnostics_period,
                                     window_s=c.diagnostics_window,
                                     drop_warn=c.drop_warn_fraction,
@@ -281,7 +289,23 @@ class QualityNode(Node):
                                    **sync, **kwargs)
         self.watch_inputs(hints)
         self.diag.set_value("warmup_ms", round(self.inputs.warmup_s * 1e3, 1))
+        self._set_scheduling()
         return self.inputs
+
+    def _set_scheduling(self) -> None:
+        """``realtime_priority``, once the input and frame threads exist (later threads
+        inherit it); ``scheduling`` in /diagnostics says what the node runs with."""
+        if self.realtime_priority <= 0:
+            self.diag.set_value("scheduling", "normal")
+            return
+        n, refused = realtime_scheduling(self.realtime_priority)
+        if refused:
+            self.diag.set_value("scheduling", "normal (realtime_priority refused)")
+            self.warn_input("realtime_priority", f"{refused}; running with normal scheduling")
+            return
+        self.diag.set_value("scheduling", f"SCHED_FIFO {self.realtime_priority}")
+        self.get_logger().info(
+            f"SCHED_FIFO priority {self.realtime_priority} on the node's {n} threads")
 
     def process(self, messages: list, markers: bool):
         """One matched input set (in ``self.inputs.topics`` order) -> the frame's outputs

@@ -77,3 +77,40 @@ def touch_memory(megabytes: float) -> float:
         blocks.append(b)
     del blocks
     return time.perf_counter() - t0
+
+
+def realtime_scheduling(priority: int) -> tuple[int, str | None]:
+    """Put every thread of this process under ``SCHED_FIFO`` at ``priority`` (1-99);
+    threads started later inherit it. Returns (threads set, None) or (0, why it was refused).
+
+    Why a node wants it: on two cores the three nodes, the cloud publishers and the
+    subscribers all wake within a few milliseconds of each frame, and a thread woken into
+    that waits for a core (MIMO's input thread: 5-9 ms for one frame in six, measured).
+    A FIFO thread takes a core at once; the kernel's real-time throttling (by default 95 %
+    of each second) keeps a runaway one from freezing the machine. Needs CAP_SYS_NICE or
+    an RLIMIT_RTPRIO of at least ``priority``; refused, nothing is changed."""
+    import os
+
+    if not hasattr(os, "sched_setscheduler") or not os.path.isdir("/proc/self/task"):
+        return 0, "real-time scheduling is not available on this system"
+    param = os.sched_param(priority)
+    done: list[tuple[int, int, int]] = []
+    for name in os.listdir("/proc/self/task"):
+        tid = int(name)
+        try:
+            before = os.sched_getscheduler(tid), os.sched_getparam(tid).sched_priority
+            os.sched_setscheduler(tid, os.SCHED_FIFO, param)
+        except ProcessLookupError:
+            continue  # the thread ended meanwhile
+        except OSError as exc:
+            for t, policy, prio in done:  # all or nothing
+                try:
+                    os.sched_setscheduler(t, policy, os.sched_param(prio))
+                except OSError:
+                    pass
+            return 0, (f"SCHED_FIFO priority {priority} refused ({exc.strerror}): it needs "
+                       f"CAP_SYS_NICE or a real-time priority limit of at least {priority} "
+                       "(`ulimit -r`, rtprio in /etc/security/limits.conf, LimitRTPRIO= in "
+                       "a systemd unit); and, in a container, a real-time CPU budget")
+        done.append((tid, *before))
+    return len(done), None

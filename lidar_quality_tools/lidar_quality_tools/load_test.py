@@ -566,6 +566,8 @@ class LoadTest:
                 "cpu_ms_per_frame": (round(float((arr[-1, 2] - arr[0, 2]) / span / rate * 1e3),
                                            2) if span > 0 and rate > 0 else None),
                 "alive": node.proc.poll() is None,
+                # what the node runs with (its realtime_priority granted or refused)
+                "scheduling": values.get("scheduling"),
                 # the same by thread (lq_inputs, lq_frames, lq_executor, dds, other)
                 "cpu_ms_per_frame_by_thread": _per_frame(by_thread[n], rate),
             }

@@ -207,3 +207,60 @@ def test_warnings_are_throttled_per_cause(ros):
     assert wait_until(lambda: any(m.level == Log.ERROR and "third problem" in m.msg
                                   for m in list(log.messages)), timeout=5.0)
     assert node.diag.status().level == DiagnosticStatus.ERROR
+
+
+def _node_scheduling(ros, prefix=(), preexec_fn=None):
+    """Start mimo_node (installed executable, shipped models) with realtime_priority 4;
+    its /diagnostics status once it says how it is scheduled, and its threads' policies."""
+    import os
+    import subprocess
+
+    from diagnostic_msgs.msg import DiagnosticArray
+    from node_shell_checks import executable
+
+    diags = ros.collector(DiagnosticArray, "/diagnostics")
+    proc = ros.spawn([*prefix, str(executable("mimo_ros", "mimo_node")), "--ros-args",
+                      "-r", "__node:=rt_under_test", "-p", "realtime_priority:=4",
+                      "-p", "diagnostics_period:=0.2"],
+                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                     preexec_fn=preexec_fn)
+
+    def status():
+        for arr in reversed(list(diags.messages)):
+            for s in arr.status:
+                if "rt_under_test" in s.name and any(v.key == "scheduling" for v in s.values):
+                    return s
+        return None
+    try:
+        assert wait_until(lambda: status() is not None or proc.poll() is not None, 60.0)
+        assert proc.poll() is None, proc.communicate()[0]
+        tids = [int(t) for t in os.listdir(f"/proc/{proc.pid}/task")]
+        policies = {(os.sched_getscheduler(t), os.sched_getparam(t).sched_priority)
+                    for t in tids}
+        return status(), policies, len(tids)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=30)
+
+
+def test_realtime_priority_is_applied_to_every_thread(ros):
+    import os
+
+    from realtime_rights import probe_realtime
+    if probe_realtime()["refused"]:
+        pytest.skip("this machine refuses SCHED_FIFO to the tests")
+    status, policies, n = _node_scheduling(ros)
+    values = {v.key: v.value for v in status.values}
+    assert values["scheduling"] == "SCHED_FIFO 4"
+    assert policies == {(os.SCHED_FIFO, 4)} and n >= 5  # DDS, executor, input, frame threads
+
+
+def test_realtime_priority_refused_is_a_standing_warning(ros):
+    import os
+
+    from realtime_rights import without_realtime_rights
+    status, policies, _ = _node_scheduling(ros, *without_realtime_rights())
+    values = {v.key: v.value for v in status.values}
+    assert values["scheduling"] == "normal (realtime_priority refused)"
+    assert status.level == WARN and "SCHED_FIFO priority 4 refused" in status.message
+    assert policies == {(os.SCHED_OTHER, 0)}

@@ -4,7 +4,10 @@ import sys
 import threading
 from pathlib import Path
 
+import pytest
+
 from lidar_quality_ros.threads import name_os_thread
+from realtime_rights import probe_realtime, without_realtime_rights
 
 
 def test_a_thread_is_named_in_the_kernel():
@@ -74,3 +77,23 @@ def test_touched_memory_stays_with_the_thread_for_its_next_arrays():
     assert cold_added >= 40  # fresh pages, each faulted in by the arrays
     assert warm_added <= 8  # the pages the warm-up wrote, reused
     assert kept_mb >= 48  # freed, yet kept by the thread's heap
+
+
+def test_realtime_scheduling_covers_every_thread_and_those_started_later():
+    import os
+
+    r = probe_realtime()
+    if r["refused"]:
+        pytest.skip(f"this machine refuses SCHED_FIFO to the test: {r['refused']}")
+    # the main thread, `before` and `after`: all FIFO 3 (`after` by inheritance)
+    assert r["threads"] == 3 and r["n"] == 2
+    assert r["policies"] == [[os.SCHED_FIFO, 3]] * 3
+
+
+def test_realtime_scheduling_refused_says_why_and_changes_nothing():
+    import os
+
+    r = probe_realtime(*without_realtime_rights())
+    assert r["n"] == 0
+    assert "SCHED_FIFO priority 3 refused" in r["refused"] and "ulimit -r" in r["refused"]
+    assert r["policies"] == [[os.SCHED_OTHER, 0]] * 3

@@ -110,8 +110,9 @@ def test_unknown_node_refused(tmp_path):
 
 
 def test_e2e_experiment_short(tmp_path):
-    """bench_e2e's experiment, tiny: mimo_node alone, 3 s together-run, two 2-s rate steps.
-    The node answers over DDS, the figures and the report are there, it exits cleanly."""
+    """bench_e2e's experiment, tiny: mimo_node alone, 3 s together-runs (as deployed, with
+    its realtime_priority, and with normal scheduling), two 2-s rate steps. The node
+    answers over DDS, the figures and the report are there, it exits cleanly."""
     spec = importlib.util.spec_from_file_location("bench_e2e", ROOT / "bench" / "bench_e2e.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
@@ -121,7 +122,8 @@ def test_e2e_experiment_short(tmp_path):
                  if k.startswith("e2e.mimo.cpu_ms_per_frame.")}
     assert set(figs) - {f"e2e.mimo.cpu_ms_per_frame.{k}" for k in by_thread} == {
         f"e2e.mimo.{k}" for k in ("latency_ms_p50", "latency_ms_p99", "dropped", "max_rate_hz",
-                                  "cpu_ms_per_frame")}
+                                  "cpu_ms_per_frame")} | {
+        f"e2e.normal_sched.mimo.{k}" for k in ("latency_ms_p50", "latency_ms_p99", "dropped")}
     # the node names its threads: the input thread and the frame worker are told apart,
     # and the kinds add up to the process (thread CPU is counted in 10 ms ticks)
     assert set(by_thread) <= {"inputs", "frames", "executor", "dds", "other"}
@@ -137,6 +139,12 @@ def test_e2e_experiment_short(tmp_path):
     assert e["unexpected_outputs"] == 0 and e["duplicates"] == 0
     assert e["latency_ms_p50"] > 0 and e["memory"]["samples"] >= 2
     assert report["together"]["exit_codes"] == {"mimo": 0}
+    # the deployment's priority, granted or said to be refused; then normal scheduling
+    assert e["scheduling"] in ("SCHED_FIFO 10", "normal (realtime_priority refused)")
+    e = report["together_normal_sched"]["nodes"]["mimo"]
+    assert e["scheduling"] == "normal" and e["published"] == 30
+    assert e["dropped"] == figs["e2e.normal_sched.mimo.dropped"]
+    assert report["together_normal_sched"]["exit_codes"] == {"mimo": 0}
     steps = report["max_rate"]["mimo"]["steps"]
     assert 1 <= len(steps) <= 2 and steps[0]["rate_hz"] == 10
     assert figs["e2e.mimo.max_rate_hz"] in (0.0, 10.0, 20.0)
@@ -144,3 +152,4 @@ def test_e2e_experiment_short(tmp_path):
     saved = json.loads((tmp_path / "report.json").read_text())
     assert saved["figures"] == figs
     assert (tmp_path / "all_mimo_node.log").exists()
+    assert (tmp_path / "all_normal_sched_mimo_node.log").exists()
