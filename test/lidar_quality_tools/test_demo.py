@@ -176,13 +176,16 @@ def test_exit_code_decision_on_the_recorded_run(dropped_run):
 
 
 def test_likely_cause_from_the_node_diagnostics(dropped_run):
-    """On MIMO's recorded figures (no drop), as if 2 frames had been lost: processing
-    slower than the input period is named, with the node's own times; messages the node
-    did not receive, and outputs the recorder did not, are named too."""
+    """On MIMO's recorded figures with its drop counters zeroed, as if 2 frames had been
+    lost: processing slower than the input period is named, with the node's own times;
+    messages the node did not receive, and outputs the recorder did not, are named too.
+    (Zeroed: MIMO drops nothing here as a rule, but once in a clean-clone CI run its first
+    frame stalled 0.68 s on the loaded machine and the next ones overran.)"""
     from lidar_quality_tools.demo import likely_causes
 
     mimo = copy.deepcopy(dropped_run[2]["nodes"]["mimo"])
     d = mimo["node_diagnostics"]
+    d.update({k: "0" for k in d if k.startswith("dropped")})
     n = mimo["frames_in"] = mimo["frames_out"] = int(d["frames_out"])  # as the node saw it
     for key, inp in mimo["inputs"].items():
         inp["published"] = int(d[f"received.{key}"])
