@@ -77,8 +77,9 @@ def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=R
                     "fastdds_profile": os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE")}
 
     # 1. all nodes at once, as deployed; 1b. all with normal scheduling
-    for key, params in (("together", DEPLOYMENT), ("together_normal_sched", {})):
-        log_prefix = "all_" if key == "together" else "all_normal_sched_"
+    for key, params, log_prefix, prefix in (
+            ("together", DEPLOYMENT, "all_", "e2e"),
+            ("together_normal_sched", {}, "all_normal_sched_", "e2e.normal_sched")):
         with LoadTest(names, out_dir, n_points=n_points, log_prefix=log_prefix, say=_say,
                       extra_params={n: p for n, p in params.items() if n in names}) as lt:
             if warmup > 0:
@@ -88,7 +89,6 @@ def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=R
             r["frame_bytes"] = lt.frame_bytes()
         r["exit_codes"] = dict(lt.exit_codes)
         report[key] = r
-        prefix = "e2e" if key == "together" else "e2e.normal_sched"
         for n, e in r["nodes"].items():
             figures[f"{prefix}.{n}.latency_ms_p50"] = e["latency_ms_p50"]
             figures[f"{prefix}.{n}.latency_ms_p99"] = e["latency_ms_p99"]

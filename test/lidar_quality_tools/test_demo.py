@@ -185,7 +185,7 @@ def test_likely_cause_from_the_node_diagnostics(dropped_run):
 
     mimo = copy.deepcopy(dropped_run[2]["nodes"]["mimo"])
     d = mimo["node_diagnostics"]
-    d.update({k: "0" for k in d if k.startswith("dropped")})
+    d.update({k: "0" for k in d if k == "dropped" or k.startswith("dropped.")})
     n = mimo["frames_in"] = mimo["frames_out"] = int(d["frames_out"])  # as the node saw it
     for key, inp in mimo["inputs"].items():
         inp["published"] = int(d[f"received.{key}"])
