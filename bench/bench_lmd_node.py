@@ -1,9 +1,10 @@
 """lmd_node frame work without DDS: ``lmd.node_frame_ms`` (p50 / p99; goal p99 <= 15 ms).
 
 What the node does per frame from the received bytes to the messages it publishes: the
-cloud (120k points) deserialized by rclpy, the 50 detections and 500 proposals
+cloud (120k points) read from its bytes (``cloud_cdr``; until 2026-11-29 deserialized by
+rclpy, as the node then took it), the 50 detections and 500 proposals
 (reference-perception layout: one hypothesis per class, 4 classes) decoded from their
-serialized bytes (``detection_cdr``, as the node's raw subscriptions do), then one
+serialized bytes (``detection_cdr``), as the node's raw subscriptions do, then one
 ``LmdProcessor.process`` call, the body of the node's frame callback: features
 (threshold mode), meta classifier and regressor, the re-scored output detections
 (serialized bytes) and the DetectionQualityArray (bytes too, as the node publishes it).
@@ -24,6 +25,7 @@ import numpy as np
 from threadpoolctl import threadpool_limits
 
 from lidar_quality_core import meta_model, synthetic
+from lidar_quality_core.cloud_cdr import decode_point_cloud
 from lidar_quality_core.detection_cdr import decode_detection_array
 from lidar_quality_core.iou import iou_bev
 from lidar_quality_core.pointcloud import create_xyz_cloud
@@ -76,17 +78,16 @@ def _models(settings, tmp):
 
 
 def figures():
-    from rclpy.serialization import deserialize_message, serialize_message
-    from sensor_msgs.msg import PointCloud2
+    from rclpy.serialization import serialize_message
 
     tmp = tempfile.TemporaryDirectory(prefix="bench_lmd_node_")
     cloud, dets, props, _ = _messages(120_000, N_DET, N_PROP, seed=0)
     wire = [serialize_message(m) for m in (cloud, dets, props)]
 
     def inputs():
-        """What the node's subscriptions hand over: the cloud deserialized by rclpy, the
-        detection arrays decoded from their bytes (detection_cdr)."""
-        return (deserialize_message(wire[0], PointCloud2), decode_detection_array(wire[1]),
+        """What the node's subscriptions hand over: the cloud and the detection arrays read
+        from their bytes (cloud_cdr, detection_cdr)."""
+        return (decode_point_cloud(wire[0]), decode_detection_array(wire[1]),
                 decode_detection_array(wire[2]))
 
     with threadpool_limits(limits=1):
@@ -107,7 +108,7 @@ def figures():
             w = [serialize_message(m) for m in _messages(n, N_DET, N_PROP, seed=0)[:3]]
 
             def sized(w=w):
-                return proc.process(deserialize_message(w[0], PointCloud2),
+                return proc.process(decode_point_cloud(w[0]),
                                     decode_detection_array(w[1]), decode_detection_array(w[2]))
             yield f"lmd.node_frame_{tag}_ms", sized, "percentiles"
     tmp.cleanup()

@@ -37,8 +37,8 @@ from numba import njit, types
 from .boxes import DetectionArrays, arrays_from_fields
 from .kernel_types import array_in, array_out
 
-__all__ = ["CdrError", "DecodedDetections", "decode_detection_array", "encode_detection_array",
-           "rescaled_scores", "encode_detections"]
+__all__ = ["CdrError", "read_string", "DecodedDetections", "decode_detection_array",
+           "encode_detection_array", "rescaled_scores", "encode_detections"]
 
 _ENCAPS = {b"\x00\x01": "<"}
 _N_HYP_DOUBLES = 44  # score + pose (7) + covariance (36), contiguous and 8-aligned
@@ -82,8 +82,11 @@ class DecodedDetections:
         return len(self.bbox_at)
 
 
-def _string(buf, p: int, u32, end: int):
-    """(str, offset after it) of the CDR string at ``p`` (already aligned)."""
+def read_string(buf, p: int, u32, end: int):
+    """(str, offset after it) of the CDR string at ``p`` (already aligned); ``CdrError``
+    when it does not fit in ``end`` bytes or is not UTF-8."""
+    if p + 4 > end:
+        raise CdrError(f"truncated message ({end} bytes): a string at byte {p}")
     (length,) = u32.unpack_from(buf, p)
     q = p + 4 + length
     if length == 0 or q > end:
@@ -115,7 +118,7 @@ def open_array(data, what: str, elements: str, min_size: int):
     f = _FMTS["<"]
     try:
         sec, nsec = f.stamp.unpack_from(buf, 4)
-        frame_id, p = _string(buf, 12, f.u32, end)
+        frame_id, p = read_string(buf, 12, f.u32, end)
         p += -p % 4
         n = words[p >> 2]
     except (struct.error, IndexError) as exc:
@@ -169,7 +172,7 @@ def _class_codes(buf: bytes, raw_bytes: np.ndarray, at: np.ndarray, lengths: np.
     codes[order] = rank[group]
     names = [""] * len(starts)
     for g, i in enumerate(first.tolist()):
-        names[rank[g]] = _string(buf, int(at[i]), _FMTS["<"].u32, len(buf))[0]
+        names[rank[g]] = read_string(buf, int(at[i]), _FMTS["<"].u32, len(buf))[0]
     return codes, names
 
 
@@ -395,7 +398,7 @@ def decode_detection_array(data) -> DecodedDetections:
     raw, score_at, hyp_sc, hyp_det = _fields(raw_bytes, bbox_at, cls_at, lengths, hyp_off)
     if ok == 1:
         u32 = f.u32
-        names = [_string(buf, a, u32, len(buf))[0] for a in first_at.tolist()]
+        names = [read_string(buf, a, u32, len(buf))[0] for a in first_at.tolist()]
     else:
         codes, names = _class_codes(buf, raw_bytes, cls_at, lengths)
     return DecodedDetections(

@@ -14,6 +14,9 @@ from __future__ import annotations
 import struct
 
 import numpy as np
+from numba import njit, types
+
+from .kernel_types import array_in, array_out
 
 U32 = struct.Struct("<I")
 
@@ -42,25 +45,77 @@ def array_head(header, confidence_model_id: str, iou_model_id: str, n: int) -> b
     return head
 
 
+def _joined(texts) -> tuple[bytes, np.ndarray]:
+    """UTF-8 bytes of ``texts`` (any objects, as ``str``) one after the other, and the
+    (n + 1,) offsets of each in them."""
+    encoded = [str(t).encode("utf-8") for t in texts]
+    offsets = np.zeros(len(encoded) + 1, np.int64)
+    np.cumsum([len(b) for b in encoded], out=offsets[1:])
+    return b"".join(encoded), offsets
+
+
+@njit(array_out(types.uint8)(types.int64, array_in(types.uint8), array_in(types.int64),
+                             array_in(types.uint8), array_in(types.int64), array_in(types.int64),
+                             types.boolean, array_in(types.uint8, 2)), cache=True, nogil=True)
+def _entries(start, ids, id_at, classes, class_at, counts, with_counts, values):
+    # Two passes over the entries (size, then bytes), positions relative to byte 4 of the
+    # message as in ``pad``; ``values`` row i is entry i's float64s as little-endian bytes.
+    n = len(id_at) - 1
+    width = values.shape[1]
+    p = start
+    for i in range(n):
+        p += (-(p - 4)) % 4 + 8 + id_at[i + 1] - id_at[i] + 1
+        p += (-(p - 4)) % 4 + 4 + class_at[i + 1] - class_at[i] + 1
+        if with_counts:
+            p += (-(p - 4)) % 4 + 4
+        p += (-(p - 4)) % 8 + width
+    out = np.zeros(p - start, np.uint8)
+    p = start
+
+    def u32(q, v):
+        for b in range(4):
+            out[q - start + b] = (v >> (8 * b)) & 0xFF
+
+    for i in range(n):
+        p += (-(p - 4)) % 4
+        u32(p, i)
+        k = id_at[i + 1] - id_at[i]
+        u32(p + 4, k + 1)
+        out[p + 8 - start:p + 8 + k - start] = ids[id_at[i]:id_at[i + 1]]
+        p += 8 + k + 1
+        p += (-(p - 4)) % 4
+        k = class_at[i + 1] - class_at[i]
+        u32(p, k + 1)
+        out[p + 4 - start:p + 4 + k - start] = classes[class_at[i]:class_at[i + 1]]
+        p += 4 + k + 1
+        if with_counts:
+            p += (-(p - 4)) % 4
+            u32(p, counts[i])
+            p += 4
+        p += (-(p - 4)) % 8
+        out[p - start:p + width - start] = values[i]
+        p += width
+    return out
+
+
 def append_entries(out: bytearray, detection_ids, class_ids, figures, counts=None) -> None:
     """Entries of a detection's kind to ``out``: entry ``i`` is uint32 ``i``, string
     ``detection_ids[i]``, string ``class_ids[i]``, uint32 ``counts[i]`` (only when
-    ``counts`` is given), then row ``i`` of ``figures`` (n, k) as k float64."""
-    values = np.asarray(figures, dtype="<f8")
-    width = 8 * values.shape[1]
-    values = values.tobytes()
-    counts = None if counts is None else np.asarray(counts, dtype=np.int64).reshape(-1).tolist()
-    for i, (did, cid) in enumerate(zip(detection_ids, class_ids)):
-        pad(out, 4)
-        out += U32.pack(i)
-        out += cdr_string(str(did))
-        pad(out, 4)
-        out += cdr_string(str(cid))
-        if counts is not None:
-            pad(out, 4)
-            out += U32.pack(counts[i])
-        pad(out, 8)
-        out += values[width * i:width * (i + 1)]
+    ``counts`` is given), then row ``i`` of ``figures`` (n, k) as k float64. One compiled
+    pass (``_entries``): in Python, ~20 steps an entry cost a MIMO frame 0.3 ms."""
+    values = np.ascontiguousarray(np.asarray(figures, dtype="<f8"))
+    ids, id_at = _joined(detection_ids)
+    classes, class_at = _joined(class_ids)
+    if len(class_at) != len(id_at):
+        raise ValueError(f"{len(class_at) - 1} class ids for {len(id_at) - 1} detections")
+    if values.ndim != 2 or len(values) != len(id_at) - 1:
+        raise ValueError(f"figures must be ({len(id_at) - 1}, k), got {values.shape}")
+    n_counts = np.zeros(0, np.int64) if counts is None else np.asarray(counts, np.int64).reshape(-1)
+    if counts is not None and len(n_counts) != len(id_at) - 1:
+        raise ValueError(f"{len(n_counts)} counts for {len(id_at) - 1} detections")
+    out += _entries(len(out), np.frombuffer(ids, np.uint8), id_at,
+                    np.frombuffer(classes, np.uint8), class_at, n_counts, counts is not None,
+                    values.view(np.uint8).reshape(len(values), 8 * values.shape[1])).tobytes()
 
 
 def append_version_fields(out: bytearray, *, version: int, drift_level: int,

@@ -18,6 +18,7 @@ from functools import partial
 from contextlib import ExitStack
 from typing import Callable, Sequence
 
+from lidar_quality_core.cloud_cdr import decode_point_cloud
 from lidar_quality_core.input_watchdog import InputWatchdog
 from lidar_quality_core.time_sync import StampSynchronizer, SyncedSet, stamp_to_ns
 from rclpy.callback_groups import CallbackGroup
@@ -26,6 +27,7 @@ from rclpy.exceptions import InvalidHandle
 from rclpy.guard_condition import GuardCondition
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.subscription import Subscription
+from sensor_msgs.msg import PointCloud2
 
 from .qos import SENSOR_QOS
 from .threads import name_os_thread, touch_memory
@@ -294,7 +296,9 @@ class SyncedInputs:
     ``raw_decoders`` maps topics to ``fn(bytes) -> obj with .header.stamp``: those are
     subscribed with ``raw=True`` and decoded on arrival (messages rclpy would deserialize
     far too slowly, e.g. ``detection_cdr.decode_detection_array``); bytes that do not
-    decode are dropped and counted (``undecodable_input``).
+    decode are dropped and counted (``undecodable_input``). PointCloud2 inputs are always
+    taken so, read by ``cloud_cdr.decode_point_cloud`` (the points a view into the
+    received bytes: rclpy's message would copy them twice more).
 
     ``watchdog`` (an ``InputWatchdog`` over the same inputs) hears of every arrival and
     every matched set, so the node can tell why nothing comes out.
@@ -317,7 +321,8 @@ class SyncedInputs:
                  warmup_memory_mb: float = 0.0):
         self.topics = [t for _, t in topics]
         self.watchdog = watchdog
-        self._decoders = dict(raw_decoders or {})
+        self._decoders = {t: decode_point_cloud for m, t in topics if m is PointCloud2}
+        self._decoders.update(raw_decoders or {})
         self._on_arrival = on_arrival
         self.sync = StampSynchronizer(len(topics), mode=mode,
                                       slop_ns=int(round(slop_s * 1e9)) if mode == "approximate" else 0,

@@ -5,6 +5,7 @@ from lidar_quality_ros.diagnostics import NodeDiagnostics
 from lidar_quality_ros.synced_inputs import SyncedInputs
 from rclpy.node import Node
 from geometry_msgs.msg import PointStamped
+from sensor_msgs.msg import PointCloud2
 from node_shell_checks import wait_until
 
 
@@ -332,3 +333,48 @@ def test_a_failed_warm_up_is_said_and_the_inputs_go_on(ros, monkeypatch):
     assert ros.wait_for_match(pa)
     pa.publish(_h(1, 0))
     assert wait_until(lambda: len(node.sets) == 1)
+
+
+class _Cloud(Node):
+    """One PointCloud2 input: taken as bytes and read by cloud_cdr."""
+
+    def __init__(self, **kwargs):
+        super().__init__("cloud_node", **kwargs)
+        self.sets = []
+        self.diag = NodeDiagnostics(self, period_s=0)
+        self.inputs = SyncedInputs(self, [(PointCloud2, "points")], self.sets.append,
+                                   diagnostics=self.diag)
+
+    def warn_input(self, key, message, level=None, *, transient=False):
+        self.diag.warn(key, message, transient=transient)
+
+
+def test_a_cloud_input_arrives_as_a_view_of_its_bytes_and_bad_bytes_are_counted(ros):
+    import numpy as np
+    from lidar_quality_core.cloud_cdr import DecodedCloud
+    from lidar_quality_core.pointcloud import create_xyz_cloud, xyz_intensity
+    from std_msgs.msg import Header
+
+    node = ros.start(_Cloud)
+    assert node.inputs.subscriptions[0].raw
+    pub = ros.sensor_publisher(PointCloud2, "points")
+    assert ros.wait_for_match(pub)
+    rng = np.random.default_rng(3)
+    xyz = rng.normal(size=(1000, 3)).astype(np.float32)
+    inten = rng.random(1000).astype(np.float32)
+    h = Header(frame_id="lidar")
+    h.stamp.sec, h.stamp.nanosec = 5, 17
+    pub.publish(create_xyz_cloud(h, xyz, inten))
+    assert wait_until(lambda: len(node.sets) == 1)
+    got = node.sets[0].messages[0]
+    assert isinstance(got, DecodedCloud) and got.header == h
+    assert not got.data.flags.writeable
+    back = xyz_intensity(got)
+    assert np.array_equal(back[0], xyz) and np.array_equal(back[1], inten)
+    # bytes that are no PointCloud2 (another encapsulation): this message only, counted, said
+    pub.publish(b"\x00\x00\x00\x00" + bytes(40))
+    assert wait_until(lambda: node.diag.counts().get("dropped.undecodable_input", 0) == 1)
+    assert "cannot decode it" in node.diag.status().message
+    h.stamp.sec = 6
+    pub.publish(create_xyz_cloud(h, xyz, inten))
+    assert wait_until(lambda: len(node.sets) == 2)
