@@ -54,9 +54,10 @@ frame ~12 ms), and ``output/detections`` is published as bytes built from them (
 field copied, scores replaced), ``output/quality`` too
 (``lidar_quality_core.detection_quality_cdr``, the same message); little-endian CDR
 only (what ROS 2 writes on x86 / ARM), other bytes are dropped and counted
-(``undecodable_input``). A malformed cloud (or one without an intensity field) drops
-the frame (counted as ``malformed_cloud``); invalid boxes raise throttled warnings, the
-frame is processed.
+(``undecodable_input``). The cloud is taken as bytes too and read in place
+(``lidar_quality_core.cloud_cdr``, the points a view of the received bytes). A
+malformed cloud (or one without an intensity field) drops the frame (counted as
+``malformed_cloud``); invalid boxes raise throttled warnings, the frame is processed.
 
 Frames: with ``transform_inputs`` (default) the node listens to ``/tf_static`` and ``/tf``
 (``lidar_quality_ros.tf_listener``, tf2's QoS) and the processor moves detections and

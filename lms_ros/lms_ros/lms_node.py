@@ -35,7 +35,10 @@ Outputs (header copied from ``input/points``):
 The frame work is :class:`lms_ros.pipeline.LmsProcessor` (no ROS; definitions in
 :mod:`lms_ros.pipeline` and :mod:`lidar_quality_core.lms.segment_metrics`); this shell declares the
 parameters, loads the models (refusing to start when they are missing or do not fit the
-class map), subscribes, calls the processor and publishes. A cloud that cannot be decoded
+class map), subscribes, calls the processor and publishes. Clouds are taken as serialized
+bytes and read in place (``lidar_quality_core.cloud_cdr``: the points a view of the
+received bytes; bytes that are no little-endian PointCloud2 are dropped and counted as
+``undecodable_input``). A cloud that cannot be decoded
 (missing field, wrong type, point counts that differ) drops the frame (counted as
 ``malformed_cloud``); renormalized or unusable probabilities raise throttled warnings,
 the frame is processed, as is a cloud without an intensity field (the intensity metrics
