@@ -36,6 +36,7 @@ from numba import njit, types
 
 from .boxes import DetectionArrays, arrays_from_fields
 from .kernel_types import array_in, array_out
+from .quality_array_cdr import cdr_strings
 
 __all__ = ["CdrError", "read_string", "DecodedDetections", "decode_detection_array",
            "encode_detection_array", "rescaled_scores", "encode_detections"]
@@ -584,17 +585,6 @@ def _write_detections(hdr, names, name_at, ids, id_at, counts, order, S, pose_co
     return out
 
 
-def _string_entries(strings) -> tuple[np.ndarray, np.ndarray]:
-    """CDR string entries (uint32 length with the NUL, bytes, NUL) of ``strings``, one
-    after the other, and where each starts (``len + 1`` offsets)."""
-    u32 = _FMTS["<"].u32.pack
-    encoded = [x.encode() + b"\0" for x in strings]
-    blob = b"".join(u32(len(e)) + e for e in encoded)
-    at = np.zeros(len(encoded) + 1, np.int64)
-    np.cumsum([4 + len(e) for e in encoded], out=at[1:])
-    return np.frombuffer(blob, np.uint8), at
-
-
 def encode_detections(header, boxes, class_names, class_scores, *, ids=None,
                       covariance_diagonal=None) -> bytes:
     """Serialized (little-endian CDR) Detection3DArray of new boxes: the message
@@ -624,9 +614,8 @@ def encode_detections(header, boxes, class_names, class_scores, *, ids=None,
     frame = header.frame_id.encode() + b"\0"
     hdr = f.stamp.pack(header.stamp.sec, header.stamp.nanosec) + f.u32.pack(len(frame)) + frame
     hdr += b"\0" * (-len(hdr) % 4)  # the next field (a uint32) is 4-aligned
-    names, name_at = _string_entries(class_names)
-    id_bytes, id_at = _string_entries([str(i) for i in range(n)] if ids is None
-                                      else [str(i) for i in ids])
+    names, name_at = cdr_strings(class_names)
+    id_bytes, id_at = cdr_strings(range(n) if ids is None else ids)
     return _write_detections(np.frombuffer(hdr, np.uint8), names, name_at, id_bytes, id_at,
                              counts.astype(np.int64), order.astype(np.int64), S,
                              pose_cov.reshape(-1).view(np.uint8),

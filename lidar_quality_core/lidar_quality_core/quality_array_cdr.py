@@ -27,6 +27,15 @@ def cdr_string(text: str) -> bytes:
     return U32.pack(len(b)) + b
 
 
+def cdr_strings(texts) -> tuple[np.ndarray, np.ndarray]:
+    """The CDR strings of ``texts`` (any objects, as ``str``) one after the other, as
+    uint8, and where each starts (``len + 1`` offsets): input of the compiled writers."""
+    entries = [cdr_string(str(t)) for t in texts]
+    at = np.zeros(len(entries) + 1, np.int64)
+    np.cumsum([len(e) for e in entries], out=at[1:])
+    return np.frombuffer(b"".join(entries), np.uint8), at
+
+
 def pad(buf: bytearray, align: int) -> None:
     """Zero bytes up to the next multiple of ``align`` (relative to byte 4)."""
     buf += b"\0" * (-(len(buf) - 4) % align)
@@ -45,27 +54,19 @@ def array_head(header, confidence_model_id: str, iou_model_id: str, n: int) -> b
     return head
 
 
-def _joined(texts) -> tuple[bytes, np.ndarray]:
-    """UTF-8 bytes of ``texts`` (any objects, as ``str``) one after the other, and the
-    (n + 1,) offsets of each in them."""
-    encoded = [str(t).encode("utf-8") for t in texts]
-    offsets = np.zeros(len(encoded) + 1, np.int64)
-    np.cumsum([len(b) for b in encoded], out=offsets[1:])
-    return b"".join(encoded), offsets
-
-
 @njit(array_out(types.uint8)(types.int64, array_in(types.uint8), array_in(types.int64),
                              array_in(types.uint8), array_in(types.int64), array_in(types.int64),
                              types.boolean, array_in(types.uint8, 2)), cache=True, nogil=True)
 def _entries(start, ids, id_at, classes, class_at, counts, with_counts, values):
     # Two passes over the entries (size, then bytes), positions relative to byte 4 of the
-    # message as in ``pad``; ``values`` row i is entry i's float64s as little-endian bytes.
+    # message as in ``pad``; ``ids`` / ``classes`` are whole CDR strings (``cdr_strings``),
+    # ``values`` row i is entry i's float64s as little-endian bytes.
     n = len(id_at) - 1
     width = values.shape[1]
     p = start
     for i in range(n):
-        p += (-(p - 4)) % 4 + 8 + id_at[i + 1] - id_at[i] + 1
-        p += (-(p - 4)) % 4 + 4 + class_at[i + 1] - class_at[i] + 1
+        p += (-(p - 4)) % 4 + 4 + id_at[i + 1] - id_at[i]
+        p += (-(p - 4)) % 4 + class_at[i + 1] - class_at[i]
         if with_counts:
             p += (-(p - 4)) % 4 + 4
         p += (-(p - 4)) % 8 + width
@@ -80,14 +81,12 @@ def _entries(start, ids, id_at, classes, class_at, counts, with_counts, values):
         p += (-(p - 4)) % 4
         u32(p, i)
         k = id_at[i + 1] - id_at[i]
-        u32(p + 4, k + 1)
-        out[p + 8 - start:p + 8 + k - start] = ids[id_at[i]:id_at[i + 1]]
-        p += 8 + k + 1
+        out[p + 4 - start:p + 4 + k - start] = ids[id_at[i]:id_at[i + 1]]
+        p += 4 + k
         p += (-(p - 4)) % 4
         k = class_at[i + 1] - class_at[i]
-        u32(p, k + 1)
-        out[p + 4 - start:p + 4 + k - start] = classes[class_at[i]:class_at[i + 1]]
-        p += 4 + k + 1
+        out[p - start:p + k - start] = classes[class_at[i]:class_at[i + 1]]
+        p += k
         if with_counts:
             p += (-(p - 4)) % 4
             u32(p, counts[i])
@@ -104,8 +103,8 @@ def append_entries(out: bytearray, detection_ids, class_ids, figures, counts=Non
     ``counts`` is given), then row ``i`` of ``figures`` (n, k) as k float64. One compiled
     pass (``_entries``): in Python, ~20 steps an entry cost a MIMO frame 0.3 ms."""
     values = np.ascontiguousarray(np.asarray(figures, dtype="<f8"))
-    ids, id_at = _joined(detection_ids)
-    classes, class_at = _joined(class_ids)
+    ids, id_at = cdr_strings(detection_ids)
+    classes, class_at = cdr_strings(class_ids)
     if len(class_at) != len(id_at):
         raise ValueError(f"{len(class_at) - 1} class ids for {len(id_at) - 1} detections")
     if values.ndim != 2 or len(values) != len(id_at) - 1:
@@ -113,8 +112,7 @@ def append_entries(out: bytearray, detection_ids, class_ids, figures, counts=Non
     n_counts = np.zeros(0, np.int64) if counts is None else np.asarray(counts, np.int64).reshape(-1)
     if counts is not None and len(n_counts) != len(id_at) - 1:
         raise ValueError(f"{len(n_counts)} counts for {len(id_at) - 1} detections")
-    out += _entries(len(out), np.frombuffer(ids, np.uint8), id_at,
-                    np.frombuffer(classes, np.uint8), class_at, n_counts, counts is not None,
+    out += _entries(len(out), ids, id_at, classes, class_at, n_counts, counts is not None,
                     values.view(np.uint8).reshape(len(values), 8 * values.shape[1])).tobytes()
 
 
