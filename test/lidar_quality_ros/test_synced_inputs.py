@@ -351,6 +351,7 @@ class _Cloud(Node):
 
 def test_a_cloud_input_arrives_as_a_view_of_its_bytes_and_bad_bytes_are_counted(ros):
     import numpy as np
+    from diagnostic_msgs.msg import DiagnosticStatus
     from lidar_quality_core.cloud_cdr import DecodedCloud
     from lidar_quality_core.pointcloud import create_xyz_cloud, xyz_intensity
     from std_msgs.msg import Header
@@ -374,7 +375,8 @@ def test_a_cloud_input_arrives_as_a_view_of_its_bytes_and_bad_bytes_are_counted(
     # bytes that are no PointCloud2 (another encapsulation): this message only, counted, said
     pub.publish(b"\x00\x00\x00\x00" + bytes(40))
     assert wait_until(lambda: node.diag.counts().get("dropped.undecodable_input", 0) == 1)
-    assert "cannot decode it" in node.diag.status().message
+    status = node.diag.status()
+    assert status.level == DiagnosticStatus.WARN and "cannot decode it" in status.message
     h.stamp.sec = 6
     pub.publish(create_xyz_cloud(h, xyz, inten))
     assert wait_until(lambda: len(node.sets) == 2)
