@@ -399,13 +399,15 @@ class SyncedInputs:
 
     def _dropped(self, reason: str, cause: str, text: str, n: int = 1):
         """Count ``n`` dropped under ``reason`` and warn under ``cause``: through the node's
-        per-cause warnings (shown in /diagnostics for their hold time) when it has them."""
-        if self._diag is not None:
-            self._diag.frame_dropped(reason, n)
+        per-cause warnings (shown in /diagnostics for their hold time) when it has them.
+        The warning first: a /diagnostics message published between the two (the
+        warning's log line takes a while) then never shows the count without its cause."""
         if self._warn is not None:
             self._warn(cause, text, transient=True)
         else:
             self._logger.warn(text, throttle_duration_sec=5.0)
+        if self._diag is not None:
+            self._diag.frame_dropped(reason, n)
 
     def inject(self, index: int, stamp_ns: int, msg) -> None:
         """Queue ``msg`` for input ``index`` at ``stamp_ns`` as if it had arrived (not
