@@ -20,12 +20,19 @@ stamp: ``lidar_quality_tools.output_recorder`` says why not in the publishing pr
    ``dds`` (Fast DDS's own threads), ``other``.
    The nodes run as deployed on two cores (``DEPLOYMENT``): mimo_node, the one with the
    tightest budget (10 ms), with ``realtime_priority`` 10 (SCHED_FIFO for its threads),
-   the others with normal scheduling. With normal scheduling for all, each frame's MIMO
-   threads woke into a machine busy with LMD's and LMS's frames and the 8.6 MB cloud's
-   publication and waited for a core (p99 15-18 ms). What each node got is in the report
-   (``scheduling``; a refused priority is said there and on stderr).
-1b. The same with normal scheduling for all three (``realtime_priority`` 0), shown beside:
-   ``e2e.normal_sched.<node>.latency_ms_p50`` / ``_p99`` / ``.dropped``.
+   the others with normal scheduling; the recorder, which stands for the consumer of the
+   outputs, at the same priority (``RECORDER_PRIORITY``: a consumer at normal priority
+   waits for a core behind LMD's and LMS's frames, and that wait made most of MIMO's
+   tail; ``output_recorder`` has the figures). With normal scheduling for all, each
+   frame's MIMO threads woke into a machine busy with LMD's and LMS's frames and the
+   8.6 MB cloud's publication and waited for a core (p99 15-18 ms). What each node and
+   the recorder got is in the report (``scheduling``, ``recorder_scheduling``; a refused
+   priority is said there and on stderr).
+1b. The same nodes with the recorder at normal priority (the measurement before
+   2026-12-01), shown beside: ``e2e.normal_consumer.<node>.latency_ms_p50`` / ``_p99`` /
+   ``.dropped``.
+1c. The same with normal scheduling for all three and the recorder (``realtime_priority``
+   0), shown beside: ``e2e.normal_sched.<node>.latency_ms_p50`` / ``_p99`` / ``.dropped``.
 2. Each node alone: the rate stepped through ``RATES`` for ``WINDOW`` = 10 s each, until a
    step drops a frame (or the publisher cannot keep the rate: then the figure is a lower
    bound, the report says so); ``e2e.<node>.max_rate_hz`` = the highest rate with no
@@ -33,7 +40,7 @@ stamp: ``lidar_quality_tools.output_recorder`` says why not in the publishing pr
 
 The whole report (every step's latency, the publisher's timing, the nodes' own
 diagnostics, CPU and memory) goes to ``out/bench/e2e/report.json``, node logs beside it.
-About 7 minutes on the 2-core machine. As a CLI, shorter variants::
+About 9 minutes on the 2-core machine. As a CLI, shorter variants::
 
     bash scripts/with_env.sh python bench/bench_e2e.py --duration 15 --window 5 --rates 10,20
 """
@@ -58,6 +65,8 @@ OUT = ROOT / "out" / "bench" / "e2e"
 GOALS_P99_MS = {"lmd": 30.0, "lms": 80.0, "mimo": 10.0}
 #: per node, the parameters of the two-core deployment measured in part 1 (module doc)
 DEPLOYMENT = {"mimo": {"realtime_priority": 10}}
+#: SCHED_FIFO priority of the recorder (the outputs' consumer) in the deployment (module doc)
+RECORDER_PRIORITY = 10
 
 
 def _say(s: str) -> None:
@@ -76,12 +85,15 @@ def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=R
     report: dict = {"n_points": n_points, "load_average_start": os.getloadavg(),
                     "fastdds_profile": os.environ.get("FASTRTPS_DEFAULT_PROFILES_FILE")}
 
-    # 1. all nodes at once, as deployed; 1b. all with normal scheduling
-    for key, params, log_prefix, prefix in (
-            ("together", DEPLOYMENT, "all_", "e2e"),
-            ("together_normal_sched", {}, "all_normal_sched_", "e2e.normal_sched")):
+    # 1. all nodes at once, as deployed; 1b. the consumer at normal priority; 1c. all normal
+    for key, params, rec_prio, log_prefix, prefix in (
+            ("together", DEPLOYMENT, RECORDER_PRIORITY, "all_", "e2e"),
+            ("together_normal_consumer", DEPLOYMENT, 0, "all_normal_consumer_",
+             "e2e.normal_consumer"),
+            ("together_normal_sched", {}, 0, "all_normal_sched_", "e2e.normal_sched")):
         with LoadTest(names, out_dir, n_points=n_points, log_prefix=log_prefix, say=_say,
-                      extra_params={n: p for n, p in params.items() if n in names}) as lt:
+                      extra_params={n: p for n, p in params.items() if n in names},
+                      recorder_priority=rec_prio) as lt:
             if warmup > 0:
                 lt.run(warmup, rate)
             _say(f"{', '.join(names)} at once ({key}): {duration:.0f} s at {rate:g} Hz")
@@ -89,6 +101,10 @@ def experiment(names=NAMES, duration=DURATION, warmup=WARMUP, rate=RATE, rates=R
             r["frame_bytes"] = lt.frame_bytes()
         r["exit_codes"] = dict(lt.exit_codes)
         report[key] = r
+        if rec_prio and not str(r["recorder_scheduling"]).startswith("SCHED_FIFO"):
+            _say(f"WARNING: the recorder's priority {rec_prio} was refused on this machine "
+                 f"({r['recorder_scheduling']}): its latencies are with a normal-priority "
+                 "consumer")
         for n, e in r["nodes"].items():
             figures[f"{prefix}.{n}.latency_ms_p50"] = e["latency_ms_p50"]
             figures[f"{prefix}.{n}.latency_ms_p99"] = e["latency_ms_p99"]

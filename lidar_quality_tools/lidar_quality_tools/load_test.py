@@ -28,6 +28,10 @@ measures per node:
   processing time percentiles);
 * the publisher: publish call durations, ticks it ran late, the rate it achieved.
 
+``recorder_priority`` > 0 runs the recorder's threads under SCHED_FIFO at that priority,
+as the consumer of a node deployed with ``realtime_priority`` is (``output_recorder``
+says why); what it got is ``recorder_scheduling`` in each run's report.
+
 :func:`max_sustained_rate` steps a rate up until a step drops a frame.
 """
 from __future__ import annotations
@@ -238,7 +242,8 @@ class LoadTest:
 
     def __init__(self, names: Sequence[str], out_dir: Path, *, n_points: int = 120_000,
                  n_frames: int = 4, extra_params: dict | None = None, log_prefix: str = "",
-                 start_timeout: float = 120.0, say: Callable[[str], None] | None = None):
+                 start_timeout: float = 120.0, say: Callable[[str], None] | None = None,
+                 recorder_priority: int = 0):
         unknown = set(names) - set(NODES)
         if unknown:
             raise ValueError(f"unknown node(s) {sorted(unknown)}; known: {', '.join(NODES)}")
@@ -247,6 +252,9 @@ class LoadTest:
         self.n_points = int(n_points)
         self.n_frames = max(1, int(n_frames))
         self.extra_params = extra_params or {}
+        self.recorder_priority = int(recorder_priority)
+        #: what the recorder's threads run with, as it says (None until it has)
+        self.recorder_scheduling: str | None = None
         self.log_prefix = log_prefix
         self.start_timeout = float(start_timeout)
         self.say = say or (lambda s: print(s, flush=True))
@@ -324,7 +332,9 @@ class LoadTest:
         (its module doc says why), its lines read here into each node's ``OutputLog``."""
         log = open(self.out_dir / f"{self.log_prefix}recorder.log", "w")
         self._recorder = self.ros.spawn(
-            [sys.executable, "-m", "lidar_quality_tools.output_recorder", *outputs],
+            [sys.executable, "-m", "lidar_quality_tools.output_recorder",
+             *(["--realtime-priority", str(self.recorder_priority)]
+               if self.recorder_priority > 0 else []), *outputs],
             stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=log)
         log.close()  # the child keeps its own descriptor
         self._matched = {n: threading.Event() for n in self.nodes}
@@ -338,6 +348,8 @@ class LoadTest:
                 continue
             if got[0] == "r":
                 self.nodes[got[1]].output.record(got[2], got[3])
+            elif got[0] == "s":
+                self.recorder_scheduling = got[1]
             else:
                 self._matched[got[1]].set()
 
@@ -526,6 +538,7 @@ class LoadTest:
                   "tick_lag_ms_p99": percentile(lag_ms, 99),
                   "tick_lag_ms_max": round(max(lag_ms), 2) if lag_ms else None,
                   "warmup_s": warmup, "memory_window_s": window,
+                  "recorder_scheduling": self.recorder_scheduling,
                   "nodes": {}}
         for n in names:
             node = self.nodes[n]

@@ -2,7 +2,9 @@
 
 Subscribes raw to the given topics and writes one line per message to stdout:
 ``r <name> <stamp ns> <time.monotonic()>`` (the clock is the system's CLOCK_MONOTONIC, the
-same in every process), and ``m <name>`` once a topic has a publisher.
+same in every process), ``m <name>`` once a topic has a publisher, and once at start
+``s <scheduling>``: what its threads run with (``normal``, ``SCHED_FIFO <p>``, or
+``normal (refused: <why>)``).
 
 Why a process: in the publishing process an rclpy ``publish`` of a large cloud holds the
 GIL for the whole call (measured: an 8.6 MB LMS cloud, 1.8 ms quiet and 8-14 ms with the
@@ -11,8 +13,18 @@ receiving callback there waited for the LMS publication and every LMD and MIMO o
 arrived meanwhile was stamped late by up to that much. A consumer of the nodes' outputs in
 a real stack does not share the lidar driver's interpreter.
 
-Usage: ``python -m lidar_quality_tools.output_recorder NAME TOPIC TYPE [NAME TOPIC TYPE ...]``
-(``TYPE`` as ``pkg/msg/Name``); it runs until SIGINT / SIGTERM or until its stdin closes.
+Why ``--realtime-priority P`` (SCHED_FIFO for all of its threads, as a node's
+``realtime_priority``): the recorder stands for the consumer of the outputs. On two cores a
+consumer at normal priority waits for a core behind LMD's and LMS's frames and the cloud
+publications, and that wait, not the node's, made most of MIMO's tail (alternating 40-s
+load tests, MIMO at FIFO 10, 2026-12-01: p99 11.8 / 11.7 ms with the recorder at normal
+priority, 8.4 / 8.0 with it at FIFO 10; LMD's and LMS's figures unchanged). A deployment
+that gives a node real-time priority for its latency gives it to the node's consumer too,
+or the priority buys nothing end to end.
+
+Usage: ``python -m lidar_quality_tools.output_recorder [--realtime-priority P] NAME TOPIC
+TYPE [NAME TOPIC TYPE ...]`` (``TYPE`` as ``pkg/msg/Name``); it runs until SIGINT / SIGTERM
+or until its stdin closes.
 """
 from __future__ import annotations
 
@@ -31,12 +43,15 @@ def _message_class(type_name: str):
 
 
 def parse_line(line: str):
-    """``("r", name, stamp_ns, t)``, ``("m", name)`` or None for a line of the recorder."""
+    """``("r", name, stamp_ns, t)``, ``("m", name)``, ``("s", scheduling)`` or None for a
+    line of the recorder."""
     parts = line.split()
     if len(parts) == 4 and parts[0] == "r":
         return "r", parts[1], int(parts[2]), float(parts[3])
     if len(parts) == 2 and parts[0] == "m":
         return "m", parts[1]
+    if len(parts) >= 2 and parts[0] == "s":
+        return "s", line.strip()[2:]
     return None
 
 
@@ -44,10 +59,14 @@ def main(argv: list[str] | None = None) -> int:
     import rclpy
     from lidar_quality_core.time_sync import stamp_of_bytes
     from lidar_quality_ros.qos import output_qos
+    from lidar_quality_ros.threads import realtime_scheduling
     from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
     args = list(sys.argv[1:] if argv is None else argv)
+    priority = 0
+    if args[:1] == ["--realtime-priority"] and len(args) > 1 and args[1].isdigit():
+        priority, args = int(args[1]), args[2:]
     if not args or len(args) % 3:
         print(__doc__, file=sys.stderr)
         return 2
@@ -66,6 +85,12 @@ def main(argv: list[str] | None = None) -> int:
         subs[name] = node.create_subscription(_message_class(type_name), topic, writer(name),
                                               output_qos(50), raw=True)
     unmatched = dict(subs)
+    # after the subscriptions: rclpy's and Fast DDS's threads exist, later ones inherit it
+    scheduling = "normal"
+    if priority > 0:
+        _, refused = realtime_scheduling(priority)
+        scheduling = f"normal (refused: {refused})" if refused else f"SCHED_FIFO {priority}"
+    os.write(out, f"s {scheduling}\n".encode())
 
     def report_matches() -> None:
         for name, sub in list(unmatched.items()):

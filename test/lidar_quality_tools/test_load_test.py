@@ -111,7 +111,8 @@ def test_unknown_node_refused(tmp_path):
 
 def test_e2e_experiment_short(tmp_path):
     """bench_e2e's experiment, tiny: mimo_node alone, 3 s together-runs (as deployed, with
-    its realtime_priority, and with normal scheduling), two 2-s rate steps. The node
+    its realtime_priority and the recorder's; with the recorder at normal priority; with
+    normal scheduling for all), two 2-s rate steps. The node
     answers over DDS, the figures and the report are there, it exits cleanly."""
     spec = importlib.util.spec_from_file_location("bench_e2e", ROOT / "bench" / "bench_e2e.py")
     bench = importlib.util.module_from_spec(spec)
@@ -123,7 +124,8 @@ def test_e2e_experiment_short(tmp_path):
     assert set(figs) - {f"e2e.mimo.cpu_ms_per_frame.{k}" for k in by_thread} == {
         f"e2e.mimo.{k}" for k in ("latency_ms_p50", "latency_ms_p99", "dropped", "max_rate_hz",
                                   "cpu_ms_per_frame")} | {
-        f"e2e.normal_sched.mimo.{k}" for k in ("latency_ms_p50", "latency_ms_p99", "dropped")}
+        f"e2e.{run}.mimo.{k}" for run in ("normal_consumer", "normal_sched")
+        for k in ("latency_ms_p50", "latency_ms_p99", "dropped")}
     # the node names its threads: the input thread and the frame worker are told apart,
     # and the kinds add up to the process (thread CPU is counted in 10 ms ticks)
     assert set(by_thread) <= {"inputs", "frames", "executor", "dds", "other"}
@@ -141,8 +143,16 @@ def test_e2e_experiment_short(tmp_path):
     assert report["together"]["exit_codes"] == {"mimo": 0}
     # the deployment's priority, granted or said to be refused; then normal scheduling
     assert e["scheduling"] in ("SCHED_FIFO 10", "normal (realtime_priority refused)")
+    # the recorder, the outputs' consumer, at the same priority (or said to be refused)
+    rec = report["together"]["recorder_scheduling"]
+    assert rec == "SCHED_FIFO 10" or rec.startswith("normal (refused: SCHED_FIFO priority 10")
+    e = report["together_normal_consumer"]["nodes"]["mimo"]
+    assert report["together_normal_consumer"]["recorder_scheduling"] == "normal"
+    assert e["scheduling"] == report["together"]["nodes"]["mimo"]["scheduling"]
+    assert e["dropped"] == figs["e2e.normal_consumer.mimo.dropped"] and e["published"] == 30
     e = report["together_normal_sched"]["nodes"]["mimo"]
     assert e["scheduling"] == "normal" and e["published"] == 30
+    assert report["together_normal_sched"]["recorder_scheduling"] == "normal"
     assert e["dropped"] == figs["e2e.normal_sched.mimo.dropped"]
     assert report["together_normal_sched"]["exit_codes"] == {"mimo": 0}
     steps = report["max_rate"]["mimo"]["steps"]
