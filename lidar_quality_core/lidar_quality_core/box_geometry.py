@@ -154,7 +154,9 @@ def _inside_pairs(points, boxes, margin=0.0):
             _grid_pairs(p, tab, normal, cs, out_pt, out_bx)
 
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
-    for j in np.setdiff1d(np.flatnonzero(valid), normal):
+    brute = valid.copy()  # a mask, not np.setdiff1d: its sort cost 0.36 ms a frame
+    brute[normal] = False
+    for j in np.flatnonzero(brute):
         # brute force, one box at a time (memory O(M)); only pathological inputs get here
         with np.errstate(invalid="ignore", over="ignore"):
             m = _exact(x, y, z, tab.take([j]))
