@@ -29,11 +29,42 @@ def cdr_string(text: str) -> bytes:
 
 def cdr_strings(texts) -> tuple[np.ndarray, np.ndarray]:
     """The CDR strings of ``texts`` (any objects, as ``str``) one after the other, as
-    uint8, and where each starts (``len + 1`` offsets): input of the compiled writers."""
-    entries = [cdr_string(str(t)) for t in texts]
-    at = np.zeros(len(entries) + 1, np.int64)
-    np.cumsum([len(e) for e in entries], out=at[1:])
-    return np.frombuffer(b"".join(entries), np.uint8), at
+    uint8, and where each starts (``len + 1`` offsets): input of the compiled writers.
+
+    ASCII texts without NUL (ids, class names: the usual case) are encoded at once and
+    framed by one compiled pass (a frame's 100-200 strings: ~1 us each by
+    :func:`cdr_string`, a fifth of it so); others string by string."""
+    strs = [t if type(t) is str else str(t) for t in texts]
+    joined = "\0".join(strs)
+    if not (joined.isascii() and joined.count("\0") == len(strs) - 1):
+        entries = [cdr_string(t) for t in strs]
+        at = np.zeros(len(entries) + 1, np.int64)
+        np.cumsum([len(e) for e in entries], out=at[1:])
+        return np.frombuffer(b"".join(entries), np.uint8), at
+    lengths = np.fromiter(map(len, strs), np.int64, len(strs))
+    return _framed(np.frombuffer(joined.encode("ascii"), np.uint8), lengths)
+
+
+@njit(types.Tuple((array_out(types.uint8), array_out(types.int64)))(
+    array_in(types.uint8), array_in(types.int64)), cache=True, nogil=True)
+def _framed(joined, lengths):
+    # ``joined``: the texts with one NUL between each two; each text becomes its uint32
+    # length (NUL included), its bytes and the NUL
+    n = len(lengths)
+    at = np.zeros(n + 1, np.int64)
+    for i in range(n):
+        at[i + 1] = at[i] + 5 + lengths[i]
+    out = np.empty(at[n], np.uint8)
+    src = 0
+    for i in range(n):
+        m = lengths[i] + 1
+        p = at[i]
+        for b in range(4):
+            out[p + b] = (m >> (8 * b)) & 0xFF
+        out[p + 4:p + 3 + m] = joined[src:src + m - 1]
+        out[p + 3 + m] = 0
+        src += m
+    return out, at
 
 
 def pad(buf: bytearray, align: int) -> None:
