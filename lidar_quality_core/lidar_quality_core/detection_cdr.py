@@ -369,6 +369,50 @@ def _fields(raw, bbox_at, cls_at, cls_len, hyp_off):
     return box, score_at, score, det
 
 
+@njit(array_out(types.uint8)(_U8, _I64, _I64), cache=True, nogil=True)
+def _joined(raw, at, lengths):
+    # the contents of the CDR strings at ``at`` (uint32 length with the NUL, bytes, NUL),
+    # one NUL between each two
+    n = len(at)
+    size = 0
+    for i in range(n):
+        size += lengths[i]
+    out = np.empty(max(size - 1, 0), np.uint8)
+    p = 0
+    for i in range(n):
+        m = lengths[i] - 1
+        out[p:p + m] = raw[at[i] + 4:at[i] + 4 + m]
+        p += m
+        if i + 1 < n:
+            out[p] = 0
+            p += 1
+    return out
+
+
+def _joined_ids(buf, raw_bytes, id_at, id_len) -> list:
+    """The ids (str) at ``id_at``: gathered into one buffer and decoded at once (500
+    proposals: a fifth of the time of a slice and a decode each); an id with a NUL in it
+    or bytes that are not UTF-8 go string by string (``CdrError`` for an id that is not
+    UTF-8)."""
+    n = len(id_at)
+    if n == 0:
+        return []
+    try:
+        text = _joined(raw_bytes, id_at, id_len.astype(np.int64)).tobytes().decode("utf-8")
+    except UnicodeDecodeError:
+        text = None
+    if text is not None and text.count("\0") == n - 1:
+        return text.split("\0")
+    return _decoded_ids([buf[a + 4:a + 3 + m] for a, m in zip(id_at.tolist(), id_len.tolist())])
+
+
+def _decoded_ids(ids: list) -> list:
+    try:
+        return [b.decode("utf-8") for b in ids]
+    except UnicodeDecodeError as exc:
+        raise CdrError(f"an id is not UTF-8: {exc}") from None
+
+
 def decode_detection_array(data) -> DecodedDetections:
     """Decode serialized Detection3DArray bytes (``CdrError`` when they are not one)."""
     # a Detection3D takes > 100 bytes
@@ -378,9 +422,7 @@ def decode_detection_array(data) -> DecodedDetections:
     raw_bytes = np.frombuffer(buf, dtype=np.uint8)
     ok, spans, bbox_at, id_at, id_len, hyp_off, cls_at, lengths, codes, first_at = _walk(
         raw_bytes, p, n)
-    if ok:
-        ids = [buf[a + 4:a + 3 + m] for a, m in zip(id_at.tolist(), id_len.tolist())]
-    else:  # the loop says where the bytes end
+    if not ok:  # the loop says where the bytes end
         spans, bbox_at, id_at, ids, hyp_off, cls_at = _layout_loop(buf, words, p, n)
         id_at = np.asarray(id_at, dtype=np.int64)
         bbox_at = np.asarray(bbox_at, dtype=np.int64)
@@ -390,10 +432,7 @@ def decode_detection_array(data) -> DecodedDetections:
         id_len = _gather(raw_bytes, id_at, 4).view("<u4").reshape(-1)
     if n and id_len.min() == 0:
         raise CdrError("bad string: an id of length 0")
-    try:
-        ids = [b.decode("utf-8") for b in ids]
-    except UnicodeDecodeError as exc:
-        raise CdrError(f"an id is not UTF-8: {exc}") from None
+    ids = _joined_ids(buf, raw_bytes, id_at, id_len) if ok else _decoded_ids(ids)
     if len(lengths) and lengths.min() == 0:
         raise CdrError(f"bad string at byte {int(cls_at[np.argmin(lengths)])}: length 0")
     raw, score_at, hyp_sc, hyp_det = _fields(raw_bytes, bbox_at, cls_at, lengths, hyp_off)

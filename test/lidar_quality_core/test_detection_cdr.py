@@ -261,3 +261,24 @@ def test_damaged_bytes_decode_alike_on_both_walks(seed, monkeypatch):
         else:
             assert_arrays_equal(fast.arrays, loop.arrays)
             np.testing.assert_array_equal(fast.det_spans, loop.det_spans)
+
+
+def _with_ids(ids):
+    return Detection3DArray(detections=[Detection3D(id=i) for i in ids])
+
+
+def test_ids_with_a_nul_inside_are_read_whole():
+    """The ids are read at once, split at NULs; an id that holds a NUL itself (CDR allows
+    it) is read string by string, whole."""
+    data = bytearray(serialize_message(_with_ids(["aXb", "", "cc"])))
+    data[data.index(b"aXb") + 1] = 0
+    assert decode_detection_array(bytes(data)).arrays.ids == ["a\0b", "", "cc"]
+    assert decode_detection_array(serialize_message(_with_ids(["", "", "é"]))).arrays.ids == [
+        "", "", "é"]
+
+
+def test_an_id_that_is_not_utf8_is_refused():
+    data = bytearray(serialize_message(_with_ids(["ok", "aXb"])))
+    data[data.index(b"aXb") + 1] = 0xFF
+    with pytest.raises(CdrError, match="an id is not UTF-8"):
+        decode_detection_array(bytes(data))
