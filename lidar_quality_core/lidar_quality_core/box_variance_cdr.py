@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, types
 
-from .detection_cdr import CdrError, _aligned, _f64, _u32, open_array
+from .detection_cdr import CdrError, _aligned, _f64, _u32, joined_strings, open_array
 from .kernel_types import array_in, array_out
 
 __all__ = ["DecodedVariances", "decode_box_variance_array"]
@@ -74,8 +74,5 @@ def decode_box_variance_array(data) -> DecodedVariances:
     ok, index, id_at, id_len, values = _walk(np.frombuffer(buf, np.uint8), p, n)
     if not ok:
         raise CdrError(f"truncated BoxVarianceArray ({len(buf)} bytes)")
-    try:
-        ids = [buf[a:a + m].decode("utf-8") for a, m in zip(id_at.tolist(), id_len.tolist())]
-    except UnicodeDecodeError as exc:
-        raise CdrError(f"a detection_id is not UTF-8: {exc}") from None
-    return DecodedVariances(h, index, ids, values)
+    return DecodedVariances(h, index, joined_strings(buf, id_at, id_len, "a detection_id"),
+                            values)

@@ -243,9 +243,15 @@ def _variances(msg, arrays: DetectionArrays, issues: list | None) -> np.ndarray:
     if msg is None:
         return var
     idx, ids, vals = _variance_entries(msg)
-    # an entry names its detection by index, and by id unless the id is empty
-    match = np.array([i < n and (not d or d == arrays.ids[i])
-                      for i, d in zip(idx.tolist(), ids)], dtype=bool).reshape(len(ids))
+    # an entry names its detection by index, and by id unless the id is empty (compared
+    # as object arrays: a Python loop over the entries cost 0.07 ms a head)
+    idx = np.asarray(idx, np.int64)
+    match = (idx >= 0) & (idx < n)
+    if len(ids):
+        named = np.array(ids, dtype=object)
+        same = named == ""
+        same[match] |= np.array(arrays.ids, dtype=object)[idx[match]] == named[match]
+        match &= same
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(vals) & (vals >= 0.0)
     bad = int((~match).sum()) + int((~ok[match].all(axis=1)).sum())

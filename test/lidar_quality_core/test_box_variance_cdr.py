@@ -47,3 +47,14 @@ def test_truncated_and_mutated_bytes():
         except CdrError:
             refused += 1
     assert 0 < refused < 300
+
+
+def test_an_id_with_a_nul_is_read_whole_and_one_not_utf8_refused():
+    """The ids are read at once, split at NULs: an id holding a NUL goes one by one,
+    whole; bytes that are not UTF-8 are refused, naming the field."""
+    data = bytearray(serialize_message(_msg(("aXb", "", "c"))))
+    data[data.index(b"aXb") + 1] = 0
+    assert decode_box_variance_array(bytes(data)).ids == ["a\0b", "", "c"]
+    data[data.index(b"a\0b") + 1] = 0xFF
+    with pytest.raises(CdrError, match="a detection_id is not UTF-8"):
+        decode_box_variance_array(bytes(data))

@@ -1,6 +1,7 @@
 """mimo_ros.pipeline: head messages -> merged detections, features, outputs; head fallback."""
 import numpy as np
 import pytest
+from lidar_quality_core.box_variance_cdr import decode_box_variance_array
 from lidar_quality_core.boxes import detections_to_arrays
 from lidar_quality_core.meta_model import MetaModels, fit_estimator, save_pair
 from lidar_quality_core.pointcloud import create_xyz_cloud
@@ -143,6 +144,20 @@ def test_variance_entries_are_matched_by_index_and_id():
     assert np.isnan(hd.variances[1]).all()
     assert np.isnan(hd.variances[2, 0]) and np.allclose(hd.variances[2, 1:], VAR[2, 1:])
     assert any("2 variance entries ignored" in t for t in issues)
+
+
+def test_variance_entries_without_id_or_out_of_range_index():
+    """An empty id matches by index alone; an index past the detections matches nothing;
+    decoded bytes match as the message does."""
+    v = var_msg(ids=[5, 6, 7])
+    v.variances[0].detection_id = ""        # by index: detection 0
+    v.variances[1].detection_index = 3      # no detection 3 (of 3)
+    for msg in (v, decode_box_variance_array(serialize_message(v))):
+        issues = []
+        hd, _ = head_detections(head_msg(ids=[5, 6, 7]), msg, MimoSettings(), issues=issues)
+        np.testing.assert_allclose(hd.variances[[0, 2]], VAR[[0, 2]])
+        assert np.isnan(hd.variances[1]).all()
+        assert any("1 variance entry ignored" in t for t in issues)
 
 
 def test_class_distribution_conversion():
