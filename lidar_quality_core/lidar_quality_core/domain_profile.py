@@ -287,14 +287,15 @@ class _GroupValues:
 
     __slots__ = ("_groups", "_where")
 
-    def __init__(self, groups):
+    def __init__(self, groups, where: dict):
         self._groups = groups
-        self._where = None
+        self._where = where  # name -> (group, column): the same for frames of one layout
+
+    @staticmethod
+    def where(groups) -> dict:
+        return {n: (g, j) for g, (names, _) in enumerate(groups) for j, n in enumerate(names)}
 
     def _find(self, k):
-        if self._where is None:
-            self._where = {n: (g, j) for g, (names, _) in enumerate(self._groups)
-                           for j, n in enumerate(names)}
         return self._where.get(k)
 
     def __contains__(self, k) -> bool:
@@ -350,6 +351,7 @@ class DriftMonitor:
         self._counts: deque = deque()
         self._values: deque = deque()
         self._total = np.zeros((len(self._names), N_FINE + 1))
+        self._layouts: dict = {}  # the column layouts of the frames' values (_GroupValues)
 
     def add(self, values, *, explain: bool = True) -> DriftReport:
         """``values``: ``{quantity: values}``, ``(names, X)`` for the columns of one
@@ -376,7 +378,14 @@ class DriftMonitor:
                 cols = [j for j, k in enumerate(names) if k in self._index]
                 groups.append(([names[j] for j in cols] if len(cols) < len(names) else names,
                                X if len(cols) == X.shape[1] else X[:, cols]))
-            frame = _GroupValues(groups)
+            # a node's frames share their layout: the name -> column map is built once
+            layout = tuple(tuple(names) for names, _ in groups)
+            where = self._layouts.get(layout)
+            if where is None:
+                if len(self._layouts) > 8:
+                    self._layouts.clear()
+                where = self._layouts[layout] = _GroupValues.where(groups)
+            frame = _GroupValues(groups, where)
         for names, V in groups:
             _add_counts(np.require(V, np.float64, "CW"),
                         np.array([self._index[k] for k in names], np.int64),
