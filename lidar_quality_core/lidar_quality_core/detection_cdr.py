@@ -391,8 +391,9 @@ def _joined(raw, start, size):
 def joined_strings(buf, start, size, what: str) -> list:
     """The UTF-8 strings of ``size[k]`` bytes at ``start[k]`` of ``buf`` (ids of a
     message's entries): gathered into one buffer by a compiled pass and decoded at once
-    (500 proposals: a fifth of the time of a slice and a decode each); a string with a
-    NUL in it or bytes that are not UTF-8 go one by one (``CdrError`` naming ``what``)."""
+    instead of a slice and a decode each (an LMD frame's 50 detections and 500
+    proposals decoded in 0.26 instead of 0.34 ms); a string with a NUL in it or bytes
+    that are not UTF-8 go one by one (``CdrError`` naming ``what``)."""
     n = len(start)
     if n == 0:
         return []

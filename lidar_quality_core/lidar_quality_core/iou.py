@@ -41,7 +41,8 @@ _I8 = array_in(types.int64)
 def _dense_pairs(ax, ay, ra, bx, by, rb, ia, ib, same):
     # every (i, j) of ia x ib, row-major, whose circles meet: the distance and radius sum
     # squared as the numpy outer products computed them (one compiled pass instead of
-    # three 50 x 500 temporaries and a nonzero: 0.23 -> 0.03 ms for an LMD frame)
+    # three 50 x 500 temporaries and a nonzero: sparse_iou of an LMD frame's 50
+    # detections and 500 proposals 0.46 -> 0.39 ms)
     cnt = 0
     out_i = out_j = np.empty(0, np.int64)
     for pass_ in range(2):
