@@ -273,8 +273,8 @@ def _grid_kernel(px, py, pz, x0, y0, inv, nx, ny, cell_start, cell_cnt, cell_box
     # coordinates are rounded exactly as in _exact (c dx + s dy, c dy - s dx): a point on
     # a face gets the same verdict on both paths. Each candidate is written and kept only
     # if inside (no branch on the verdict: a third of the candidates are inside, a branch
-    # the CPU cannot predict). With the packed rows the kernel alone ran 6-9 % faster in
-    # alternating runs on the bench frame, points_in_boxes 2-3 %.
+    # the CPU cannot predict). With the packed rows the kernel alone ran 9 % faster in an
+    # alternating run on the bench frame, points_in_boxes 2 %.
     n = px.shape[0]
     cap = max(1024, n // 4)
     out_pt = np.empty(cap, np.int64)
