@@ -30,17 +30,12 @@ def _lines(proc, into: list):
         into.append(parse_line(raw.decode()))
 
 
-def _thread_policies(pid: int) -> set:
-    return {(os.sched_getscheduler(int(t)), os.sched_getparam(int(t)).sched_priority)
-            for t in os.listdir(f"/proc/{pid}/task")}
-
-
-@pytest.mark.parametrize("stop", ["sigint", "stdin"])
-def test_recorder_process_reports_match_and_stamps(ros, stop):
-    pub = ros.publisher(Detection3DArray, "out/detections", output_qos(10))
-    proc = ros.spawn([sys.executable, "-m", "lidar_quality_tools.output_recorder",
-                      "lmd", "/out/detections", "vision_msgs/msg/Detection3DArray"],
-                     stdin=subprocess.PIPE, stdout=subprocess.PIPE)
+def _matched_recorder(ros, *options, prefix=(), preexec_fn=None):
+    """(recorder process, its parsed lines so far (growing), reader thread, deadline),
+    the recorder on /out/detections started with ``options`` and matched."""
+    proc = ros.spawn([*prefix, sys.executable, "-m", "lidar_quality_tools.output_recorder",
+                      *options, "lmd", "/out/detections", "vision_msgs/msg/Detection3DArray"],
+                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, preexec_fn=preexec_fn)
     got: list = []
     reader = threading.Thread(target=_lines, args=(proc, got), daemon=True)
     reader.start()
@@ -49,6 +44,18 @@ def test_recorder_process_reports_match_and_stamps(ros, stop):
         assert proc.poll() is None
         time.sleep(0.05)
     assert ("m", "lmd") in got
+    return proc, got, reader, deadline
+
+
+def _thread_policies(pid: int) -> set:
+    return {(os.sched_getscheduler(int(t)), os.sched_getparam(int(t)).sched_priority)
+            for t in os.listdir(f"/proc/{pid}/task")}
+
+
+@pytest.mark.parametrize("stop", ["sigint", "stdin"])
+def test_recorder_process_reports_match_and_stamps(ros, stop):
+    pub = ros.publisher(Detection3DArray, "out/detections", output_qos(10))
+    proc, got, reader, deadline = _matched_recorder(ros)
     assert ("s", "normal") in got  # said before the match
     data = FrameTemplate([InputSpec("in", DETECTIONS)], n_points=100, n_objects=2,
                          n_proposals=2).serialized("in")
@@ -80,17 +87,8 @@ def test_recorder_realtime_priority_granted_or_said_refused(ros, rights):
     if rights == "granted" and not probe_realtime()["n"]:
         pytest.skip("this machine refuses SCHED_FIFO to the test process")
     pub = ros.publisher(Detection3DArray, "out/detections", output_qos(10))
-    proc = ros.spawn([*prefix, sys.executable, "-m", "lidar_quality_tools.output_recorder",
-                      "--realtime-priority", "3",
-                      "lmd", "/out/detections", "vision_msgs/msg/Detection3DArray"],
-                     stdin=subprocess.PIPE, stdout=subprocess.PIPE, preexec_fn=preexec)
-    got: list = []
-    reader = threading.Thread(target=_lines, args=(proc, got), daemon=True)
-    reader.start()
-    deadline = time.monotonic() + 60.0
-    while ("m", "lmd") not in got and time.monotonic() < deadline:
-        assert proc.poll() is None
-        time.sleep(0.05)
+    proc, got, reader, deadline = _matched_recorder(ros, "--realtime-priority", "3",
+                                                    prefix=prefix, preexec_fn=preexec)
     said = [g[1] for g in got if g and g[0] == "s"]
     if rights == "granted":
         assert said == ["SCHED_FIFO 3"]
