@@ -321,7 +321,8 @@ def fuzz_node(name: str, cases: int, seed: int, extra: dict, huge_clouds: int,
                                                      "seconds": 0.0, "max_case_s": 0.0})
         sent_msgs = malformed = unsettled = n_ambiguous = 0
         used_keys = {_stamp_key(m) for m in ref_frame.values()}
-        prev_unsettled = None  # category of the previous case if it did not settle in time
+        corrupt_pending = 0  # corrupt messages of unsettled cases not refused yet
+        prev_category = None
         t_fuzz = time.monotonic()
         for case in fuzzer.cases(cases):
             heavy = case.category in fuzz.HEAVY_CATEGORIES
@@ -361,20 +362,24 @@ def fuzz_node(name: str, cases: int, seed: int, extra: dict, huge_clouds: int,
             c["seconds"] = round(c["seconds"] + dt, 3)
             c["max_case_s"] = round(max(c["max_case_s"], dt), 3)
             o = c["outcomes"]
+            refused_before = o["dropped.undecodable_input"]
             o["processed"] += after["frames_out"] - before["frames_out"]
             for k in after:
                 if k.startswith("dropped."):
                     n = after[k] - before.get(k, 0)
-                    # a corrupt case that had not settled (a loaded machine) is refused
-                    # now: its refusal is its own, not this valid case's
-                    if (k == "dropped.undecodable_input" and prev_unsettled == "corrupt_cdr"
-                            and case.category != "corrupt_cdr"):
-                        cats["corrupt_cdr"]["outcomes"][k] += n
-                    else:
-                        o[k] += n
-            # a case whose messages had not all arrived (a loaded machine) may still be
-            # refused by a raw decoder during the next case
-            prev_unsettled = None if ok and not lost else case.category
+                    if k == "dropped.undecodable_input" and case.category != "corrupt_cdr":
+                        # corrupt bytes of an earlier case that had not all arrived (a
+                        # loaded machine) are refused now: their refusal is theirs, not
+                        # this valid case's
+                        late = min(n, corrupt_pending)
+                        corrupt_pending -= late
+                        cats["corrupt_cdr"]["outcomes"][k] += late
+                        n -= late
+                    o[k] += n
+            if case.category == "corrupt_cdr" and not (ok and not lost):
+                # the refusals still to come of this case's corrupt messages
+                corrupt_pending += max(sum(isinstance(m, bytes) for _, m in case.messages)
+                                       - (o["dropped.undecodable_input"] - refused_before), 0)
             o["sync.late"] += after["late"] - before["late"]
             o["sync.discarded"] += after["sync_dropped"] - before["sync_dropped"]
             o["sync.resets"] += after["resets"] - before["resets"]
@@ -384,6 +389,14 @@ def fuzz_node(name: str, cases: int, seed: int, extra: dict, huge_clouds: int,
                         if m.startswith("processing error")]
                 if len(c["examples"]) < 5 and errs:
                     c["examples"].setdefault(case.variant[:60], errs[0][:300])
+            if case.category != "corrupt_cdr" and o["dropped.undecodable_input"] > refused_before:
+                # a valid message refused: what the node said, to find the decoder's bug
+                said = [m for m in node.diag.status().message.split("; ")
+                        if "dropping a message" in m]
+                c.setdefault("refused", []).append(
+                    {"variant": case.variant[:60], "previous": prev_category,
+                     "said": said[:3]})
+            prev_category = case.category
             if (case.index + 1) % 1000 == 0:
                 print(f"  {name}: {case.index + 1}/{cases} cases, "
                       f"{time.monotonic() - t_fuzz:.0f} s", flush=True)

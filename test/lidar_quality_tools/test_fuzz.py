@@ -348,7 +348,8 @@ def test_fuzz_nodes_short(tmp_path):
         assert {"huge_cloud", "invalid_stamp", "time_backwards", "missing_fields"} <= set(cats)
         errors = {c: v["outcomes"].get("dropped.processing_error", 0) for c, v in cats.items()}
         assert not any(errors.values()), (name, errors, {c: v["examples"] for c, v in cats.items()})
-        assert r["valid_cdr_refused"] == 0, name
+        assert r["valid_cdr_refused"] == 0, (name, {c: v["refused"] for c, v in cats.items()
+                                                   if v.get("refused")})
         assert r["passed"], name
     assert proc.returncode == 0, text[-3000:]
     assert "malformed messages" in proc.stdout
