@@ -9,7 +9,9 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
-from numba import njit
+from numba import njit, types
+
+from .kernel_types import array_in, array_out
 
 __all__ = ["as_boxes", "bev_corners", "corners_3d", "points_in_boxes",
            "count_points_in_boxes", "segment_stats", "SegmentStats", "as_cloud",
@@ -260,12 +262,15 @@ def _cell_table(ix0, ix1, iy0, iy1, x0, y0, cs, tol, cx, cy, c, s, hl, hw, norma
     return offsets[:-1].copy(), offsets[1:] - offsets[:-1], box
 
 
-_KERNEL_SIG = ("Tuple((int64[::1], int64[::1]))({f}[:], {f}[:], {f}[:], {f}, {f}, {f}, int64, "
-               "int64, int64[::1], int64[::1], int64[::1], float64[:, ::1])")
+def _kernel_sig(f):
+    # the points may be read-only views into a message (lmd_ros: no copy of the cloud)
+    pts = array_in(f, 1, "A")
+    return types.Tuple((array_out(types.int64), array_out(types.int64)))(
+        pts, pts, pts, f, f, f, types.int64, types.int64, array_out(types.int64),
+        array_out(types.int64), array_out(types.int64), array_out(types.float64, 2))
 
 
-@njit([_KERNEL_SIG.format(f="float32"), _KERNEL_SIG.format(f="float64")], cache=True,
-      nogil=True)
+@njit([_kernel_sig(types.float32), _kernel_sig(types.float64)], cache=True, nogil=True)
 def _grid_kernel(px, py, pz, x0, y0, inv, nx, ny, cell_start, cell_cnt, cell_box, rows):
     # Two passes over the points: each point's cell (in the points' dtype, as the grid's
     # slack assumes) and the number of candidates, then the exact test against the boxes
@@ -399,14 +404,21 @@ def as_cloud(points, intensity) -> tuple[np.ndarray, np.ndarray]:
     return pts, inten
 
 
-def inbox_point_stats(points, intensity, boxes) -> tuple[SegmentStats, int]:
+def inbox_point_stats(points, intensity, boxes, n_usable: int | None = None
+                      ) -> tuple[SegmentStats, int]:
     """Per box, the usable points inside it and their intensity statistics
     (:func:`segment_stats`: count, min, max, mean, std; 0 for an empty box), and the
     cloud's number of usable points (x, y, z and intensity finite). The in-box point
     quantities of LidarMetaDetect (P, Phi = P / usable, reflectance max / mean / std),
-    shared with LiDAR-MIMO's point features of merged boxes."""
+    shared with LiDAR-MIMO's point features of merged boxes. ``n_usable``: that number
+    when the caller has counted it (``pointcloud.padding_counts`` over a cloud whose
+    padding no box contains), not counted again."""
     pts, inten = as_cloud(points, intensity)
-    n_usable, mask = _usable_points(pts, inten)
+    if n_usable is None:
+        n_usable, mask = _usable_points(pts, inten)
+    else:
+        # points without finite coordinates are inside no box: only the intensity filters
+        mask = None if np.isfinite(np.sum(inten)) else np.isfinite(inten)
     offsets, idx = points_in_boxes(pts, boxes)
     if mask is not None:
         offsets, idx = _filter_csr(offsets, idx, mask)

@@ -31,6 +31,8 @@ __all__ = [
     "blank_padding",
     "set_cloud_data",
     "xyz_intensity",
+    "xyz_intensity_view",
+    "padding_counts",
     "finite_mask",
     "PackedCloud",
     "pack_cloud",
@@ -298,6 +300,67 @@ def xyz_intensity(msg, intensity_names: Sequence[str] = ("intensity", "reflectan
         raise CloudFormatError(
             f"field {inten_name!r} has count {fields[inten_name][0].shape[0]}, expected 1")
     return xyz, np.array(arr[inten_name], dtype=np.float32).reshape(-1)
+
+
+def xyz_intensity_view(msg, intensity_names: Sequence[str] = ("intensity", "reflectance",
+                                                                "i")):
+    """:func:`xyz_intensity` without copying where the layout allows: ``xyz`` is then a
+    read-only (N, 3) view into ``msg.data`` (x, y, z consecutive native float32 at a
+    4-aligned offset, rows without padding, an aligned buffer; the common driver layout)
+    and a float32 intensity a view too; otherwise both are the copies
+    :func:`xyz_intensity` makes. Padding is not blanked: see :func:`padding_counts`."""
+    arr = cloud_to_structured(msg)
+    fields = arr.dtype.fields or {}
+    check_xyz_fields(arr.dtype)
+    f32 = np.dtype(np.float32)
+    step = arr.dtype.itemsize
+    ox = fields["x"][1]
+    contiguous_rows = arr.ndim == 1 or int(msg.row_step) == step * arr.shape[1]
+    if not (arr.size and contiguous_rows and step % 4 == 0 and ox % 4 == 0
+            and all(fields[c][0] == f32 for c in "xyz")
+            and fields["y"][1] == ox + 4 and fields["z"][1] == ox + 8):
+        return xyz_intensity(msg, intensity_names)
+    buf = _data_bytes(msg.data)
+    xyz = np.ndarray((arr.size, 3), f32, buffer=buf, offset=ox, strides=(step, 4))
+    if not xyz.flags.aligned:
+        return xyz_intensity(msg, intensity_names)
+    xyz.flags.writeable = False
+    name = next((nm for nm in intensity_names if nm in fields), None)
+    if name is None:
+        return xyz, None
+    ft, off = fields[name][0], fields[name][1]
+    if ft.shape:
+        raise CloudFormatError(f"field {name!r} has count {ft.shape[0]}, expected 1")
+    if ft == f32 and off % 4 == 0:
+        inten = np.ndarray((arr.size,), f32, buffer=buf, offset=off, strides=(step,))
+        inten.flags.writeable = False
+        return xyz, inten
+    return xyz, np.array(arr[name], dtype=np.float32).reshape(-1)
+
+
+@njit(types.UniTuple(types.int64, 2)(array_in(types.float32, 2, "A"),
+                                     array_in(types.float32, 1, "A")), cache=True, nogil=True)
+def _padding_counts(xyz, intensity):
+    n_padding = n_finite = 0
+    for i in range(xyz.shape[0]):
+        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        if x == 0 and y == 0 and z == 0:
+            n_padding += 1
+        elif np.isfinite(x) and np.isfinite(y) and np.isfinite(z) and np.isfinite(intensity[i]):
+            n_finite += 1
+    return n_padding, n_finite
+
+
+def padding_counts(xyz: np.ndarray, intensity: np.ndarray) -> tuple[int, int]:
+    """What :func:`blank_padding` counts, without writing: ``(exact (0, 0, 0) padding
+    points, other points with finite coordinates and intensity)`` of (N, 3) float32
+    ``xyz`` (a read-only view too) and (N,) ``intensity``."""
+    xyz = np.asarray(xyz, dtype=np.float32)
+    intensity = np.asarray(intensity, dtype=np.float32).reshape(-1)
+    if xyz.ndim != 2 or xyz.shape[1] != 3 or len(intensity) != len(xyz):
+        raise ValueError(f"padding_counts expects (N, 3) points and N intensities, got "
+                         f"{xyz.shape} and {intensity.shape}")
+    return _padding_counts(xyz, intensity)
 
 
 def finite_mask(xyz: np.ndarray) -> np.ndarray:

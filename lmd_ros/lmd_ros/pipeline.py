@@ -70,7 +70,9 @@ from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
 from lidar_quality_core.meta_model import MetaModels, model_path_param
 from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import check_fields, group, param
-from lidar_quality_core.pointcloud import CloudFormatError, PaddingNote, blank_padding, xyz_intensity
+from lidar_quality_core.box_geometry import count_points_in_boxes
+from lidar_quality_core.pointcloud import (CloudFormatError, PaddingNote, blank_padding,
+                                           padding_counts, xyz_intensity_view)
 from lidar_quality_core.thresholds import (ConfidenceThresholds, class_thresholds_param,
                                            range_thresholds_param)
 from lidar_quality_core.transforms import Transform, input_transforms, transform_tolerance_param
@@ -283,6 +285,12 @@ def _moved(arr: DetectionArrays, t: Transform | None, name: str, notes: list) ->
     return replace(arr, boxes=boxes)
 
 
+def _holds_origin(dets: DetectionArrays, props: DetectionArrays | None) -> bool:
+    """A detection or proposal box contains (0, 0, 0), where the padding points are."""
+    boxes = dets.boxes if props is None else np.concatenate([dets.boxes, props.boxes])
+    return bool(count_points_in_boxes(np.zeros((1, 3)), boxes).any())
+
+
 def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettings, *,
                    transforms: dict | None = None,
                    intensity: IntensityScale | None = None) -> LmdFrame:
@@ -302,7 +310,7 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
     if mode not in MODES:
         raise ValueError(f"proposal_mode must be one of {MODES}, got {mode!r}")
     try:
-        xyz, inten = xyz_intensity(cloud_msg)
+        xyz, inten = xyz_intensity_view(cloud_msg)
     except CloudFormatError as exc:
         raise CloudFormatError(f"malformed input/points: {exc}") from exc
     if inten is None:
@@ -310,9 +318,11 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
                                "i): the reflectance features need it")
     scale = intensity if intensity is not None else IntensityScale(settings.intensity_scale)
     inten = scale.scale(inten)
-    # exact (0, 0, 0): an organized cloud's no-return padding, not a point (NaN stays truthy);
-    # xyz is the cloud's decoded copy: blanked in place
-    n_padding, n_finite = blank_padding(xyz, inten)
+    # exact (0, 0, 0): an organized cloud's no-return padding, not a point (NaN stays truthy).
+    # xyz is mostly a view into the message (no copy of the cloud): padding is then only
+    # counted, and blanked in a copy only if a box could hold it (one containing the
+    # sensor's origin), so that no box ever counts it
+    n_padding, n_finite = padding_counts(xyz, inten)
     if mode != "none" and proposals_msg is None:
         raise ValueError(f'proposal mode "{mode}" needs the proposals')
     transforms = transforms or {}
@@ -360,10 +370,14 @@ def frame_features(cloud_msg, detections_msg, proposals_msg, settings: LmdSettin
         nan = np.full(len(dets), np.nan)
         extra = np.column_stack([dets.class_scores.get(c, nan) for c in settings.class_names]
                                 ) if len(dets) else np.zeros((0, len(settings.class_names)))
+    if n_padding and _holds_origin(dets, props):
+        xyz = np.array(xyz)
+        blank_padding(xyz, inten)
     X = features.compute_features(
         xyz, inten, dets.boxes, dets.scores, dets.labels,
         proposals=None if props is None else (props.boxes, prop_scores),
-        mode=mode, class_names=settings.class_names, class_scores=extra, **kw)
+        mode=mode, class_names=settings.class_names, class_scores=extra,
+        n_usable=n_finite, **kw)
     valid = dets.valid.copy()
     X[~valid] = np.nan
     issues = {}

@@ -820,3 +820,44 @@ def test_padding_note_said_once_per_stream():
     first = note(30, 100)
     assert len(first) == 1 and "30 of 100" in first[0] and "points.padding" in first[0]
     assert note(30, 100) == [] and PaddingNote()(5, 10, "input/cloud")[0].startswith("input/cloud")
+
+
+@pytest.mark.parametrize("layout", ["packed", "padded_point", "row_padding", "float64_x",
+                                    "uint8_intensity", "xyz_apart", "unaligned_buffer"])
+def test_xyz_intensity_view_equals_the_copies(layout):
+    """The view where the layout allows it (read-only, into the message), else the copies
+    of xyz_intensity; the same values either way."""
+    from lidar_quality_core.pointcloud import padding_counts, xyz_intensity_view
+
+    rng = np.random.default_rng(5)
+    height, width, step, row_step = 3, 6, 16, None
+    fields = [pf("x", 0, 7), pf("y", 4, 7), pf("z", 8, 7), pf("intensity", 12, 7)]
+    if layout == "padded_point":
+        step = 32
+    elif layout == "row_padding":
+        row_step = step * width + 8
+    elif layout == "float64_x":
+        step = 24
+        fields = [pf("x", 0, 8), pf("y", 8, 7), pf("z", 12, 7), pf("intensity", 16, 7)]
+    elif layout == "uint8_intensity":
+        fields[3] = pf("intensity", 12, 2)
+    elif layout == "xyz_apart":
+        fields = [pf("x", 0, 7), pf("y", 8, 7), pf("z", 4, 7), pf("intensity", 12, 7)]
+    rs = step * width if row_step is None else row_step
+    vals = rng.normal(size=rs * height // 4).astype(np.float32)
+    vals[::5] = 0.0
+    raw = vals.tobytes()
+    data = array.array("B", raw)
+    if layout == "unaligned_buffer":
+        data = memoryview(bytearray(b"\0" + raw))[1:]
+    msg = duck_msg(data, fields=fields, height=height, width=width, point_step=step,
+                   row_step=rs)
+    with np.errstate(over="ignore", invalid="ignore"):
+        want = xyz_intensity(msg)
+        got = xyz_intensity_view(msg)
+    np.testing.assert_array_equal(got[0], want[0])
+    np.testing.assert_array_equal(got[1], want[1])
+    viewed = layout in ("packed", "padded_point", "uint8_intensity")
+    assert (not got[0].flags.owndata and not got[0].flags.writeable) == viewed, layout
+    xyz = want[0].copy()
+    assert padding_counts(got[0], got[1]) == pc.blank_padding(xyz, want[1])

@@ -616,6 +616,56 @@ def test_padding_points_are_left_out_and_counted(threshold_models):
     assert not any("padding" in n for n in ref.notes)
 
 
+def test_padding_in_a_box_around_the_sensor_is_still_left_out(threshold_models):
+    """The cloud is read as a view, its padding only counted: a box that contains the
+    sensor's origin (where the padding is) gets the padding blanked in a copy, so that the
+    box counts only its real points, as before the view."""
+    s, models = threshold_models
+    f = synthetic.synthetic_frame(n_points=20_000, n_objects=12, n_proposals=120, seed=9)
+    f.detections[0, :6] = [0.5, 0.0, 0.0, 4.0, 2.0, 2.0]  # around the origin
+    f.proposals[0, :6] = [0.4, 0.1, 0.0, 4.0, 2.0, 2.0]
+    cloud, dets, props = frame_messages(f, 3)
+    pts = np.concatenate([f.points, np.zeros((700, 3))]).astype(np.float32)
+    inten = np.concatenate([f.intensity, np.full(700, 0.3)]).astype(np.float32)
+    padded = create_xyz_cloud(cloud.header, pts, inten)
+    ref = LmdProcessor(s, models).process(cloud, copy.deepcopy(dets), copy.deepcopy(props))
+    out = LmdProcessor(s, models).process(padded, copy.deepcopy(dets), copy.deepcopy(props))
+    np.testing.assert_array_equal(out.frame.features, ref.frame.features)
+    assert out.counts["points.padding"] == 700
+
+
+def test_the_cloud_view_gives_the_features_of_the_blanked_copy(threshold_models):
+    """lmd reads the cloud without copying it (a read-only view into the message, the
+    padding counted, not blanked): the features equal, bit for bit, those of the copy
+    with its padding blanked that it read before, with and without padding and NaN."""
+    from lidar_quality_core.pointcloud import (blank_padding, padding_counts, xyz_intensity,
+                                               xyz_intensity_view)
+
+    s, _ = threshold_models
+    f = synthetic.synthetic_frame(n_points=30_000, n_objects=12, n_proposals=120, seed=4)
+    cloud, dets, props = frame_messages(f, 3)
+    pts = f.points.astype(np.float32)
+    pts[::97] = 0.0   # padding
+    pts[5::101, 1] = np.nan
+    inten = f.intensity.astype(np.float32)
+    inten[7::89] = np.inf
+    for msg in (cloud, create_xyz_cloud(cloud.header, pts, inten)):
+        view, vi = xyz_intensity_view(msg)
+        assert not view.flags.writeable and not view.flags.owndata  # no copy of the cloud
+        xyz, xi = xyz_intensity(msg)
+        np.testing.assert_array_equal(view, xyz)
+        counts = padding_counts(view, vi)
+        assert counts == blank_padding(xyz, xi)
+        arrays = detections_to_arrays(dets)
+        parr = detections_to_arrays(props)
+        kw = dict(proposals=(parr.boxes, parr.scores), mode="threshold",
+                  class_names=s.class_names, iou_threshold=s.iou_threshold,
+                  proposal_score_threshold=s.proposal_score_threshold)
+        want = compute_features(xyz, xi, arrays.boxes, arrays.scores, arrays.labels, **kw)
+        got = frame_features(msg, dets, props, s).features
+        np.testing.assert_array_equal(got, want)
+
+
 # --------------------------------------------------------------------------- domain drift
 def shifted(f, factor):
     """Frame ``f`` as another detector would score it: every score times ``factor``."""

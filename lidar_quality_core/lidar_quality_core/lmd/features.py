@@ -225,7 +225,8 @@ def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, propo
                      mode: str = "exact", preimage=None,
                      iou_threshold: float = DEFAULT_IOU_THRESHOLD, class_scores=None,
                      class_names: Sequence[str] | None = None, class_aware: bool = False,
-                     proposal_score_threshold: float | None = None) -> np.ndarray:
+                     proposal_score_threshold: float | None = None,
+                     n_usable: int | None = None) -> np.ndarray:
     """LMD features of the post-NMS ``boxes`` of one frame: (n_boxes, n_features) float64,
     columns as ``feature_names(mode, class_scores.shape[1] if class_scores else None)``.
 
@@ -236,6 +237,8 @@ def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, propo
     ``iou_threshold``, ``class_aware``, ``proposal_score_threshold``: mode ``"threshold"``.
     ``class_scores`` (N, C): appended as extra features, columns in the order of the class
     names given to ``feature_names``. See the module docstring for every definition.
+    ``n_usable``: the cloud's usable points when the caller counted them
+    (``box_geometry.inbox_point_stats``).
     """
     _check_mode(mode)
     if not 0.0 <= float(iou_threshold) < 1.0:
@@ -272,7 +275,7 @@ def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, propo
         allb = b
 
     # --- in-box points and per-box quantities -------------------------------------------
-    st, n_pts = inbox_point_stats(pts, inten, allb)
+    st, n_pts = inbox_point_stats(pts, inten, allb, n_usable)
     allsc = sc if mode == "none" else np.concatenate([sc, ps[need]])
     q = _quantities(allb, allsc, st, n_pts)
 
