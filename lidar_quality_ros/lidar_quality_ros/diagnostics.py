@@ -62,9 +62,13 @@ class NodeDiagnostics:
         self._pub = node.create_publisher(DiagnosticArray, "/diagnostics", output_qos(10))
         # Steady clock: a timer on the ROS clock under use_sim_time made rclpy's executor
         # wake between /clock messages and cost a core (measured with bag_player --clock).
-        self._timer = (node.create_timer(period_s, self.publish,
+        self._timer = (node.create_timer(period_s, self._tick,
                                          clock=Clock(clock_type=ClockType.STEADY_TIME))
                        if period_s > 0 else None)
+        self.period_s = float(period_s) if self._timer is not None else 0.0
+        #: called on each publication's tick, before it (the node's 1 Hz input check: one
+        #: executor wake a second instead of two, each ~0.7 ms of CPU in rclpy)
+        self.before_publish: list = []
 
     def input_received(self, topic: str) -> None:
         with self._lock:
@@ -213,6 +217,13 @@ class NodeDiagnostics:
         message = "; ".join(texts) if texts else "ok"
         return DiagnosticStatus(level=level, name=self.name, message=message,
                                 hardware_id=self.hardware_id, values=values)
+
+    def _tick(self) -> None:
+        try:
+            for fn in self.before_publish:
+                fn()
+        finally:  # a failing hook still raises, after the publication
+            self.publish()
 
     def publish(self) -> None:
         msg = DiagnosticArray(status=[self.status()])

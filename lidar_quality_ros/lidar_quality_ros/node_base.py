@@ -350,6 +350,9 @@ class QualityNode(Node):
         """Check ``self.inputs`` (a ``SyncedInputs`` with a watchdog) every second;
         ``hints``: per input name, what else fixes its absence (a parameter)."""
         self._input_hints = dict(hints or {})
+        if self.diag.period_s == 1.0:  # on the diagnostics' tick, just before it publishes
+            self.diag.before_publish.append(self._check)
+            return
         self._check_timer = self.create_timer(
             1.0, self._check, clock=Clock(clock_type=ClockType.STEADY_TIME))
 

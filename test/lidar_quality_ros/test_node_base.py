@@ -86,6 +86,19 @@ def test_lmd_missing_input_escalates_to_error(ros):
     assert "proposal_mode: none" in node.diag.status().message
 
 
+@pytest.mark.parametrize("period, timers", [(1.0, 1), (0.5, 2), (0.0, 1)])
+def test_the_input_check_rides_on_the_diagnostics_tick(ros, period, timers):
+    """At the default 1-s diagnostics period the 1-s input check runs on the diagnostics'
+    timer (one executor wake a second, not two); at another period, or with diagnostics
+    off, on its own timer. Either way an input that never arrives is named."""
+    node = ros.start(LmdNode, parameters={"diagnostics_period": period, "input_timeout": 0.5})
+    assert len(list(node.timers)) == timers
+    publish_until(ros, node, {"input/points": (PointCloud2, 0),
+                              "input/detections": (Detection3DArray, 0)},
+                  lambda: "/input/proposals" in node.diag.status().message, timeout=15.0)
+    assert "/input/proposals" in node.diag.status().message
+
+
 OFFSET = {  # inputs stamped 10 ms apart: nothing ever matches
     "lmd": ("lmd", {"proposal_mode": "none"},
             {"input/points": (PointCloud2, 0), "input/detections": (Detection3DArray, 10_000_000)},
