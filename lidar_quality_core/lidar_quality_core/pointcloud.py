@@ -286,20 +286,25 @@ def xyz_intensity(msg, intensity_names: Sequence[str] = ("intensity", "reflectan
     be float fields (:func:`check_xyz_fields`).
     """
     arr = cloud_to_structured(msg)
-    fields = arr.dtype.fields or {}
     check_xyz_fields(arr.dtype)
     xyz = np.empty((arr.size, 3), np.float32)
     dst = xyz.reshape(arr.shape + (3,))
     dst[..., 0] = arr["x"]
     dst[..., 1] = arr["y"]
     dst[..., 2] = arr["z"]
-    inten_name = next((nm for nm in intensity_names if nm in fields), None)
-    if inten_name is None:
-        return xyz, None
-    if fields[inten_name][0].shape:
-        raise CloudFormatError(
-            f"field {inten_name!r} has count {fields[inten_name][0].shape[0]}, expected 1")
-    return xyz, np.array(arr[inten_name], dtype=np.float32).reshape(-1)
+    name = _intensity_name(arr.dtype, intensity_names)
+    return xyz, None if name is None else np.array(arr[name], dtype=np.float32).reshape(-1)
+
+
+def _intensity_name(dtype: np.dtype, intensity_names: Sequence[str]) -> str | None:
+    """The first of ``intensity_names`` among the cloud's fields (None: none of them);
+    ``CloudFormatError`` if it has a count other than 1."""
+    fields = dtype.fields or {}
+    name = next((nm for nm in intensity_names if nm in fields), None)
+    if name is not None and fields[name][0].shape:
+        raise CloudFormatError(f"field {name!r} has count {fields[name][0].shape[0]}, "
+                               "expected 1")
+    return name
 
 
 def xyz_intensity_view(msg, intensity_names: Sequence[str] = ("intensity", "reflectance",
@@ -325,12 +330,10 @@ def xyz_intensity_view(msg, intensity_names: Sequence[str] = ("intensity", "refl
     if not xyz.flags.aligned:
         return xyz_intensity(msg, intensity_names)
     xyz.flags.writeable = False
-    name = next((nm for nm in intensity_names if nm in fields), None)
+    name = _intensity_name(arr.dtype, intensity_names)
     if name is None:
         return xyz, None
     ft, off = fields[name][0], fields[name][1]
-    if ft.shape:
-        raise CloudFormatError(f"field {name!r} has count {ft.shape[0]}, expected 1")
     if ft == f32 and off % 4 == 0:
         inten = np.ndarray((arr.size,), f32, buffer=buf, offset=off, strides=(step,))
         inten.flags.writeable = False
@@ -339,16 +342,25 @@ def xyz_intensity_view(msg, intensity_names: Sequence[str] = ("intensity", "refl
 
 
 @njit(types.UniTuple(types.int64, 2)(array_in(types.float32, 2, "A"),
-                                     array_in(types.float32, 1, "A")), cache=True, nogil=True)
-def _padding_counts(xyz, intensity):
+                                     array_in(types.float32, 1, "A"),
+                                     array_out(types.float32, 2)), cache=True, nogil=True)
+def _padding(xyz, intensity, out):
+    # counts the padding and the finite points; NaN over each padding point of ``out``
+    # (``xyz`` itself for blank_padding) unless ``out`` is empty (padding_counts)
+    blank = out.shape[0] > 0
     n_padding = n_finite = 0
     for i in range(xyz.shape[0]):
         x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
         if x == 0 and y == 0 and z == 0:
+            if blank:
+                out[i, 0] = out[i, 1] = out[i, 2] = np.nan
             n_padding += 1
         elif np.isfinite(x) and np.isfinite(y) and np.isfinite(z) and np.isfinite(intensity[i]):
             n_finite += 1
     return n_padding, n_finite
+
+
+_NO_POINTS = np.empty((0, 3), np.float32)
 
 
 def padding_counts(xyz: np.ndarray, intensity: np.ndarray) -> tuple[int, int]:
@@ -360,7 +372,7 @@ def padding_counts(xyz: np.ndarray, intensity: np.ndarray) -> tuple[int, int]:
     if xyz.ndim != 2 or xyz.shape[1] != 3 or len(intensity) != len(xyz):
         raise ValueError(f"padding_counts expects (N, 3) points and N intensities, got "
                          f"{xyz.shape} and {intensity.shape}")
-    return _padding_counts(xyz, intensity)
+    return _padding(xyz, intensity, _NO_POINTS)
 
 
 def finite_mask(xyz: np.ndarray) -> np.ndarray:
@@ -398,20 +410,6 @@ def valid_points(xyz: np.ndarray) -> np.ndarray:
     return mask
 
 
-@njit(types.UniTuple(types.int64, 2)(array_out(types.float32, 2), array_in(types.float32)),
-      cache=True, nogil=True)
-def _blank_padding(xyz, intensity):
-    n_padding = n_finite = 0
-    for i in range(xyz.shape[0]):
-        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
-        if x == 0 and y == 0 and z == 0:
-            xyz[i, 0] = xyz[i, 1] = xyz[i, 2] = np.nan
-            n_padding += 1
-        elif np.isfinite(x) and np.isfinite(y) and np.isfinite(z) and np.isfinite(intensity[i]):
-            n_finite += 1
-    return n_padding, n_finite
-
-
 def blank_padding(xyz: np.ndarray, intensity: np.ndarray) -> tuple[int, int]:
     """Set the (0, 0, 0) padding points (:func:`padding_mask`) of ``xyz`` to NaN, in place,
     and count: ``(padding points, points with finite coordinates and intensity
@@ -425,7 +423,7 @@ def blank_padding(xyz: np.ndarray, intensity: np.ndarray) -> tuple[int, int]:
     intensity = np.ascontiguousarray(intensity, dtype=np.float32).reshape(-1)
     if len(intensity) != len(xyz):
         raise ValueError(f"{len(intensity)} intensities for {len(xyz)} points")
-    return _blank_padding(xyz, intensity)
+    return _padding(xyz, intensity, xyz)
 
 
 class PaddingNote:

@@ -733,6 +733,13 @@ def test_real_pcd_clouds(realdata, stem):
             assert inten is None
         xyz_again = read_fields(msg, ["x", "y", "z"])
         np.testing.assert_array_equal(bits(xyz_again), bits(xyz))
+        # lmd's read: a view into the driver's bytes, the same values, the same counts
+        view, vi = pc.xyz_intensity_view(msg)
+        assert not view.flags.owndata, "a driver layout that is copied, not viewed"
+        np.testing.assert_array_equal(bits(view), bits(xyz))
+        if inten is not None:
+            np.testing.assert_array_equal(vi, inten)
+            assert pc.padding_counts(view, vi) == pc.blank_padding(xyz.copy(), inten)
     # Ranges are those of a real scene, not garbage from a wrong offset.
     ok = ref_xyz[finite_ref.reshape(-1)]
     rng = np.linalg.norm(ok, axis=1)
