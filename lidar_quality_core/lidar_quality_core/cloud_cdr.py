@@ -79,12 +79,19 @@ def _byte(buf: bytes, p: int, end: int) -> int:
 
 def decode_point_cloud(data) -> DecodedCloud:
     """:class:`DecodedCloud` of a serialized PointCloud2 (``bytes`` as a raw subscription
-    or a bag gives them); ``CdrError`` for another encapsulation or inconsistent bytes.
-    The sizes are not checked against each other here: ``pointcloud`` does that, with
-    the same messages as for a deserialized cloud."""
+    or a bag gives them, or a read-only 1-D uint8 array of them such as the views
+    ``lidar_quality_ros.serialized_take`` lends: read in place); ``CdrError`` for another
+    encapsulation or inconsistent bytes. The sizes are not checked against each other
+    here: ``pointcloud`` does that, with the same messages as for a deserialized cloud."""
     from std_msgs.msg import Header
 
-    buf = data if isinstance(data, bytes) else bytes(data)
+    if isinstance(data, bytes):
+        buf = data
+    elif (isinstance(data, np.ndarray) and data.dtype == np.uint8 and data.ndim == 1
+          and not data.flags.writeable and data.flags.c_contiguous):
+        buf = memoryview(data)  # a read-only view lent by the input reader: read in place
+    else:
+        buf = bytes(data)  # anything writable is copied: its owner could change it under us
     end = len(buf)
     if end < 4 or buf[:2] != b"\x00\x01":
         raise CdrError(f"unsupported encapsulation {buf[:4].hex() or '(empty)'} "
@@ -108,6 +115,7 @@ def decode_point_cloud(data) -> DecodedCloud:
     if n_data > end - p:
         raise CdrError(f"PointCloud2 data of {n_data} bytes cannot fit in {end} bytes")
     points = np.frombuffer(buf, np.uint8, count=n_data, offset=p)
+    points.flags.writeable = False  # a view of the received bytes, whoever owns them
     is_dense = _byte(buf, p + n_data, end) != 0
     h = Header(frame_id=frame_id)
     h.stamp.sec, h.stamp.nanosec = sec, nsec

@@ -93,7 +93,7 @@ def read_string(buf, p: int, u32, end: int):
     if length == 0 or q > end:
         raise CdrError(f"bad string at byte {p}: length {length}")
     try:
-        return buf[p + 4:q - 1].decode("utf-8"), q
+        return str(buf[p + 4:q - 1], "utf-8"), q  # bytes or a memoryview
     except UnicodeDecodeError as exc:
         raise CdrError(f"string at byte {p} is not UTF-8: {exc}") from None
 

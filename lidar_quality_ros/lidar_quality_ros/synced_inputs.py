@@ -30,6 +30,7 @@ from rclpy.subscription import Subscription
 from sensor_msgs.msg import PointCloud2
 
 from .qos import SENSOR_QOS
+from .serialized_take import BufferTaker, available as buffered_take_available
 from .threads import name_os_thread, touch_memory
 
 #: longest a node's start waits for its threads' warm-up (it goes on without it after)
@@ -145,11 +146,19 @@ class InputReader:
     of the executor with their events; one of them destroyed under us (use_sim_time
     turned off) is left out from then on, while a destroyed input ends the reader.
     ``warmup()``, if given, runs first on the thread; ``ready`` is set after it
-    (``warmup_error`` says why it failed, else None)."""
+    (``warmup_error`` says why it failed, else None). ``buffered``: raw subscriptions
+    (callbacks without message info) whose messages are taken into buffers of the
+    reader's own and handed over as read-only uint8 views of them
+    (:class:`~lidar_quality_ros.serialized_take.BufferTaker`)."""
 
     def __init__(self, node, subscriptions: Sequence, name: str, on_error: Callable[[str], None],
-                 optional: Sequence = (), warmup: Callable[[], None] | None = None):
+                 optional: Sequence = (), warmup: Callable[[], None] | None = None,
+                 buffered: Sequence = ()):
         self._required = list(subscriptions)
+        # raw subscriptions whose messages are taken into buffers of the reader's own
+        # (serialized_take: one copy fewer than rclpy's take); callbacks without info only
+        self._takers = {id(s): BufferTaker() for s in buffered
+                        if s.raw and s._callback_type is not WITH_INFO}
         # optional ones first: a transform or clock that came with a frame is in before it
         self._subs = [s for s in optional if s not in self._required] + self._required
         moved = ReadByInputReader()
@@ -201,6 +210,8 @@ class InputReader:
         except (InvalidHandle, RuntimeError):
             pass  # destroyed or shut down under us: nothing left to read
         finally:
+            for taker in self._takers.values():
+                taker.close()
             for stack in held.values():
                 stack.close()
 
@@ -266,7 +277,13 @@ class InputReader:
         for sub in subs:
             if sub.handle.pointer not in ready:
                 continue
+            taker = self._takers.get(id(sub))
             try:
+                data = NotImplemented if taker is None else taker.take(sub.handle.pointer)
+                if data is not NotImplemented:  # taken into our buffer (None: nothing)
+                    if data is not None:
+                        todo.append((sub.callback, f"input {sub.topic_name}", (data,)))
+                    continue
                 info = sub.handle.take_message(sub.msg_type, sub.raw)
             except Exception as exc:  # noqa: BLE001 - one bad message, not the reader
                 self._on_error(f"cannot take a message on {sub.topic_name}: "
@@ -298,7 +315,9 @@ class SyncedInputs:
     far too slowly, e.g. ``detection_cdr.decode_detection_array``); bytes that do not
     decode are dropped and counted (``undecodable_input``). PointCloud2 inputs are always
     taken so, read by ``cloud_cdr.decode_point_cloud`` (the points a view into the
-    received bytes: rclpy's message would copy them twice more).
+    received bytes: rclpy's message would copy them twice more), the bytes taken into
+    the input reader's own buffers (``serialized_take``: one copy fewer than rclpy's raw
+    take; rclpy's take where that is not available, said once at start).
 
     ``watchdog`` (an ``InputWatchdog`` over the same inputs) hears of every arrival and
     every matched set, so the node can tell why nothing comes out.
@@ -345,9 +364,18 @@ class SyncedInputs:
                 event_callbacks=SubscriptionEventCallbacks(message_lost=self._make_lost_cb(i)))
             for i, (msg_type, topic) in enumerate(topics)
         ]
+        # clouds into the reader's own buffers (the points a view of them: no copy to bytes)
+        buffered, why_not = [], ""
+        clouds = [s for (m, _), s in zip(topics, self.subscriptions) if m is PointCloud2]
+        if clouds:
+            ok, why_not = buffered_take_available()
+            buffered = clouds if ok else []
+        if why_not:
+            self._logger.info(f"clouds taken by rclpy (copied once more): {why_not}")
         self.reader = InputReader(node, self.subscriptions, f"{node.get_name()}_inputs",
                                   self._reader_error, optional=also_read,
-                                  warmup=partial(touch_memory, input_mb) if input_mb > 0 else None)
+                                  warmup=partial(touch_memory, input_mb) if input_mb > 0 else None,
+                                  buffered=buffered)
         self.reader.ready.wait(_WARMUP_WAIT_S)
         self.warmup_s = time.monotonic() - t_warm
         self._report_warmup()

@@ -370,6 +370,9 @@ def test_a_cloud_input_arrives_as_a_view_of_its_bytes_and_bad_bytes_are_counted(
     got = node.sets[0].messages[0]
     assert isinstance(got, DecodedCloud) and got.header == h
     assert not got.data.flags.writeable
+    # taken into the reader's own buffer (serialized_take), lent while the set holds it
+    (taker,) = node.inputs.reader._takers.values()
+    assert taker.lent() == 1
     back = xyz_intensity(got)
     assert np.array_equal(back[0], xyz) and np.array_equal(back[1], inten)
     # bytes that are no PointCloud2 (another encapsulation): this message only, counted, said
