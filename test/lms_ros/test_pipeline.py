@@ -774,3 +774,25 @@ def sent(msg):
     from rclpy.serialization import deserialize_message, serialize_message
 
     return deserialize_message(serialize_message(msg), type(msg))
+
+
+def test_probability_sums_taken_during_the_gather_are_numpys():
+    """decode's per-point sum and minimum come from the gather, block by block: the same
+    bits as numpy's reductions over the whole class-major array (NaN, inf, -0.0, uint8)."""
+    from lms_ros.pipeline import _probabilities
+
+    rng = np.random.default_rng(7)
+    N, names = 10_000, ["p_a", "p_b", "p_c", "p_d"]
+    dt = np.dtype([("x", "<f4"), ("p_a", "<f4"), ("p_b", "u1"), ("p_c", "<f8"), ("p_d", "<f4")])
+    arr = np.zeros(N, dt)
+    arr["p_a"] = rng.random(N) * np.float32(1e-20)
+    arr["p_b"] = rng.integers(0, 256, N)
+    arr["p_c"] = rng.normal(size=N)
+    arr["p_d"] = rng.random(N)
+    arr["p_a"][:50], arr["p_c"][50:100], arr["p_d"][100:150] = np.nan, np.inf, -0.0
+    arr["p_a"][150:200] = -0.0
+    probs, quantized, total, smallest = _probabilities(arr, names, "input/points")
+    assert quantized
+    with np.errstate(invalid="ignore"):
+        assert total.tobytes() == probs.sum(axis=0).tobytes()
+        assert smallest.tobytes() == probs.min(axis=0).tobytes()
