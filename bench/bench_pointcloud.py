@@ -1,4 +1,10 @@
-"""PointCloud2 decode / build figures (see bench/run.py for the contract)."""
+"""PointCloud2 decode / build figures (see bench/run.py for the contract), and the two
+baselines: one copy of a 120k-point cloud (the floor of any per-point step) and
+``baseline.python_loop_ms``, a fixed pure-Python workload (``sum(range(10**6))``) that says
+how fast this host runs the interpreter at bench time. The shared 2-core machines of this
+class differ by 2x and more from one day to the next (on 2026-12-02 ``lms.metrics_ms``,
+code unchanged, took 28 ms against 9.3-13.5 on the days before, and this loop 19-29 ms),
+and the nodes' frame costs follow them: read a bench's figures beside its baselines."""
 from __future__ import annotations
 
 import numpy as np
@@ -33,3 +39,4 @@ def figures():
     yield "core.cloud_decode_120k_ms", lambda: xyz_intensity(msg)
     yield "core.cloud_build_120k_ms", lambda: create_cloud(None, cols)
     yield "baseline.copy_cloud_120k_ms", lambda: np.frombuffer(msg.data, np.uint8).copy()
+    yield "baseline.python_loop_ms", lambda: sum(range(1_000_000))
