@@ -7,7 +7,8 @@ call), then copies it a third time into a new ``bytes`` object and frees the sec
 ``perf`` in lmd_node at 10 Hz beside the other two nodes, 1.7 ms a frame of memmove for
 a 2.8 MB frame. Here ``rcl_take_serialized_message`` writes into a serialized message that
 stays ours between takes (grown once to the largest message seen), and the message is
-handed over as a read-only numpy view of it: one copy and no allocation fewer per message.
+handed over as a read-only numpy view of it: one copy fewer per message, and no
+allocation.
 
 A buffer is lent out with the view and reused only once nothing refers to the view any
 more (a weak reference to it tells: views of the view keep it alive). At most
