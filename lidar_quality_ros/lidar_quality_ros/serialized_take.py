@@ -23,6 +23,7 @@ from __future__ import annotations
 import ctypes
 import os
 import weakref
+from typing import NamedTuple
 
 import numpy as np
 
@@ -71,7 +72,18 @@ def _loaded(name: str) -> str | None:
     return None
 
 
-_api = None
+class _Api(NamedTuple):
+    """The C functions used here."""
+
+    take: object      # rcl_take_serialized_message
+    init: object      # rcutils_uint8_array_init
+    fini: object      # rcutils_uint8_array_fini
+    allocator: object  # rcutils_get_default_allocator
+    error: object     # rcutils_get_error_string
+    reset: object     # rcutils_reset_error
+
+
+_api: _Api | None = None
 _why_not = None
 
 
@@ -111,10 +123,17 @@ def _load():
         reset = rcutils.rcutils_reset_error
         reset.argtypes = []
         reset.restype = None
-        _api = (take, init, fini, allocator, error, reset)
+        _api = _Api(take, init, fini, allocator, error, reset)
     except (OSError, AttributeError, ImportError) as exc:
         _why_not = f"{type(exc).__name__}: {exc}"
     return _api
+
+
+def _rcl_error(what: str) -> RuntimeError:
+    """``what`` with rcutils' error string (which is then reset), as an exception to raise."""
+    text = _api.error().str.decode(errors="replace")
+    _api.reset()
+    return RuntimeError(f"{what}: {text}")
 
 
 def available() -> tuple[bool, str]:
@@ -128,6 +147,11 @@ class _Buffer:
     def __init__(self, msg: _Serialized):
         self.msg = msg
         self.lent = None  # weak reference to the view handed out, None: never lent
+
+    @property
+    def in_use(self) -> bool:
+        """Something still refers to the view handed out."""
+        return self.lent is not None and self.lent() is not None
 
 
 class BufferTaker:
@@ -147,17 +171,14 @@ class BufferTaker:
 
     def _free_buffer(self) -> _Buffer | None:
         for b in self._buffers:
-            if b.lent is None or b.lent() is None:
+            if not b.in_use:
                 return b
         if len(self._buffers) >= self.max_buffers:
             return None
-        take, init, fini, allocator, error, reset = _api
         msg = _Serialized()
-        alloc = allocator()
-        if init(ctypes.byref(msg), 0, ctypes.byref(alloc)) != 0:
-            text = error().str.decode(errors="replace")
-            reset()
-            raise RuntimeError(f"rcutils_uint8_array_init failed: {text}")
+        alloc = _api.allocator()
+        if _api.init(ctypes.byref(msg), 0, ctypes.byref(alloc)) != 0:
+            raise _rcl_error("rcutils_uint8_array_init failed")
         b = _Buffer(msg)
         self._buffers.append(b)
         return b
@@ -170,14 +191,11 @@ class BufferTaker:
         if buf is None:
             self.all_lent += 1
             return NotImplemented
-        take, _, _, _, error, reset = _api
-        ret = take(subscription_pointer, ctypes.byref(buf.msg), ctypes.byref(self._info), None)
+        ret = _api.take(subscription_pointer, ctypes.byref(buf.msg), ctypes.byref(self._info), None)
         if ret == _TAKE_FAILED:
             return None
         if ret != 0:
-            text = error().str.decode(errors="replace")
-            reset()
-            raise RuntimeError(f"rcl_take_serialized_message failed ({ret}): {text}")
+            raise _rcl_error(f"rcl_take_serialized_message failed ({ret})")
         n = buf.msg.buffer_length
         if n == 0:
             view = np.zeros(0, np.uint8)
@@ -189,16 +207,15 @@ class BufferTaker:
 
     def lent(self) -> int:
         """Buffers whose view is still referred to."""
-        return sum(b.lent is not None and b.lent() is not None for b in self._buffers)
+        return sum(b.in_use for b in self._buffers)
 
     def close(self) -> None:
         """Free the buffers nobody refers to any more; those still lent are left to the
         process (freeing them would pull memory from under their views)."""
-        fini = _api[2]
         keep = []
         for b in self._buffers:
-            if b.lent is not None and b.lent() is not None:
+            if b.in_use:
                 keep.append(b)
             else:
-                fini(ctypes.byref(b.msg))
+                _api.fini(ctypes.byref(b.msg))
         self._buffers = keep
