@@ -383,3 +383,32 @@ def test_a_cloud_input_arrives_as_a_view_of_its_bytes_and_bad_bytes_are_counted(
     h.stamp.sec = 6
     pub.publish(create_xyz_cloud(h, xyz, inten))
     assert wait_until(lambda: len(node.sets) == 2)
+
+
+def test_without_rcl_takes_clouds_come_through_rclpy_and_the_node_says_why(ros, monkeypatch,
+                                                                          capfd):
+    """Where serialized_take cannot load rcl, the clouds are taken by rclpy (bytes, one copy
+    more), the same cloud arrives, and the reason is logged once at start."""
+    import numpy as np
+    from lidar_quality_core.cloud_cdr import DecodedCloud
+    from lidar_quality_core.pointcloud import create_xyz_cloud, xyz_intensity
+    from std_msgs.msg import Header
+
+    import lidar_quality_ros.synced_inputs as si
+
+    monkeypatch.setattr(si, "buffered_take_available", lambda: (False, "librcl.so left out"))
+    node = ros.start(_Cloud)
+    assert node.inputs.reader._takers == {}
+    assert "clouds taken by rclpy (copied once more): librcl.so left out" in capfd.readouterr().err
+    pub = ros.sensor_publisher(PointCloud2, "points")
+    assert ros.wait_for_match(pub)
+    xyz = np.random.default_rng(4).normal(size=(500, 3)).astype(np.float32)
+    inten = np.arange(500, dtype=np.float32)
+    h = Header(frame_id="lidar")
+    h.stamp.sec = 7
+    pub.publish(create_xyz_cloud(h, xyz, inten))
+    assert wait_until(lambda: len(node.sets) == 1)
+    got = node.sets[0].messages[0]
+    assert isinstance(got, DecodedCloud) and got.header == h
+    back = xyz_intensity(got)
+    assert np.array_equal(back[0], xyz) and np.array_equal(back[1], inten)
