@@ -7,9 +7,9 @@ operation (float32 where that code was float32, the same summation order), so th
 results are bit-identical; the tests check them against numpy references:
 
 * :func:`dispersion_block` (after :func:`transpose_block` for row-major probabilities):
-  argmax, top two probabilities and the entropy, summed in float32 in class order from
-  the logarithms the caller takes with numpy (numba's scalar ``log`` is ~4x slower than
-  numpy's vectorized one, and not bit-identical to it), then ``D`` and ``V``.
+  argmax, top two probabilities and the entropy, summed in float32 in class order, with
+  the logarithms taken in the same pass by :func:`~lidar_quality_core.float32_log.log_f32`
+  (numpy's float32 ``log``, bit for bit, vectorized with the rest), then ``D`` and ``V``.
 * :func:`read_sources`: the point and the class each pixel of the filled image reads.
 * :func:`region_sums`: the float64 sums of the measures, their squares and the
   probabilities per region (segment boundary / interior), and the pixel counts.
@@ -24,6 +24,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit, types
 
+from lidar_quality_core.float32_log import log_f32
 from lidar_quality_core.kernel_types import array_in as _in, array_out as _out
 
 __all__ = ["transpose_block", "dispersion_block", "read_sources", "region_sums",
@@ -48,14 +49,15 @@ def transpose_block(probs, b0, out):
             out[c, j] = row[c]
 
 
-@njit(types.Tuple((_F32, _BOOL))(_in(_F32, 2), _I64, _in(_F32, 2), _I64, _BOOL, _F32, _F32,
+@njit(types.Tuple((_F32, _BOOL))(_in(_F32, 2), _I64, _I64, _I64, _BOOL, _F32, _F32,
                                   _F32, _out(_I32), _out(_F32), _out(_F32), _out(_F32)),
-      cache=True, nogil=True)
-def dispersion_block(pcm, col0, logs, b0, clamp, tiny, log_tiny, scale, cls, E, D, V):
+      cache=True, nogil=True, error_model="numpy")
+def dispersion_block(pcm, col0, m, b0, clamp, tiny, log_tiny, scale, cls, E, D, V):
     """Points ``b0 .. b0 + m - 1`` from their class-major probabilities
-    ``pcm[:, col0:col0 + m]`` (n > 1 classes) and ``logs`` (n, m) = ``np.log`` of them:
-    writes ``cls`` (argmax), ``E`` = ``scale * sum_c p_c log p_c`` (summed in class order;
-    with ``clamp``, a probability below ``tiny`` has the log ``log_tiny``), ``V = 1 - p1``
+    ``pcm[:, col0:col0 + m]`` (n > 1 classes): writes ``cls`` (argmax),
+    ``E`` = ``scale * sum_c p_c log p_c`` (summed in class order, ``log`` =
+    :func:`~lidar_quality_core.float32_log.log_f32`, numpy's bits; with ``clamp``, a
+    probability below ``tiny`` has the log ``log_tiny``), ``V = 1 - p1``
     and ``D = V + p2``; a point with a NaN probability gets class 0 and a NaN ``p1``, as
     numpy's max and argmax-by-equality did. Returns the smallest probability (valid when
     none is NaN) and whether some point has a NaN probability, found as a NaN entropy
@@ -64,7 +66,7 @@ def dispersion_block(pcm, col0, logs, b0, clamp, tiny, log_tiny, scale, cls, E, 
     Class by class over the block, the running sums and top two of each point in small
     arrays: every loop is sequential and branch-free (vectorized); the top two's branches
     would mispredict on every other probability."""
-    n, m = logs.shape
+    n = pcm.shape[0]
     e = np.zeros(m, np.float32)
     p1 = np.full(m, -np.inf, np.float32)
     p2 = np.full(m, -np.inf, np.float32)
@@ -72,11 +74,10 @@ def dispersion_block(pcm, col0, logs, b0, clamp, tiny, log_tiny, scale, cls, E, 
     c1 = np.zeros(m, np.int32)
     for c in range(n):
         row = pcm[c, col0:col0 + m]
-        lg = logs[c]
         ci = np.int32(c)
         for j in range(m):
             v = row[j]
-            t = lg[j]
+            t = log_f32(v)
             t = log_tiny if clamp and v < tiny else t   # np.maximum(p, tiny); NaN stays
             e[j] += v * t
             lo[j] = np.minimum(lo[j], v)

@@ -100,11 +100,12 @@ _SIZES = ("S", "S_in", "S_bd", "S_rel", "S_rel_in", "SP")
 # segments); each block is summed from 0, then added: the order of the blockwise sparse
 # products this replaced, kept so that results stay bit-identical
 _BLOCK = 16384
-# probabilities per block of the entropy's logarithms (a cache-sized float32 buffer)
-_LOG_BLOCK = 1 << 17
+# probabilities per block of the dispersion pass (the running sums and top two of a block
+# of points, and a row-major block transposed, stay in cache)
+_DISPERSION_BLOCK = 1 << 17
 # 0 log 0 = 0: the entropy reads max(p, tiny) when some probability is not positive
 _TINY = np.float32(1e-37)
-_LOG_TINY = np.log(np.full(1, _TINY))[0]         # numpy's log, as every other p gets
+_LOG_TINY = np.log(np.full(1, _TINY))[0]         # numpy's log (float32_log.log_f32's bits)
 
 
 def n_metrics(n_classes: int) -> int:
@@ -153,26 +154,21 @@ def dispersion(probs: np.ndarray) -> tuple[np.ndarray, ...]:
         pcm = probs.T
     else:
         probs = np.ascontiguousarray(probs)
-    step = max(1, _LOG_BLOCK // n)
-    buf = np.empty(step * n, dtype=np.float32)
+    step = max(1, _DISPERSION_BLOCK // n)
     tbuf = None if class_major else np.empty(step * n, dtype=np.float32)
 
     def run(clamp: bool):
         smallest, nan = np.float32(np.inf), False
-        with np.errstate(divide="ignore", invalid="ignore"):      # log(p <= 0): clamped
-            for b0 in range(0, N, step):
-                m = min(step, N - b0)
-                logs = buf[:m * n].reshape(n, m)
-                if class_major:
-                    src, col0 = pcm, b0
-                    np.log(pcm[:, b0:b0 + m], out=logs)
-                else:   # class rows of the block, in cache
-                    src, col0 = tbuf[:m * n].reshape(n, m), 0
-                    _k.transpose_block(probs, b0, src)
-                    np.log(src, out=logs)
-                lo, bad = _k.dispersion_block(src, col0, logs, b0, clamp, _TINY, _LOG_TINY,
-                                              scale, cls, E, D, V)
-                smallest, nan = min(smallest, lo), nan or bad
+        for b0 in range(0, N, step):
+            m = min(step, N - b0)
+            if class_major:
+                src, col0 = pcm, b0
+            else:   # class rows of the block, in cache
+                src, col0 = tbuf[:m * n].reshape(n, m), 0
+                _k.transpose_block(probs, b0, src)
+            lo, bad = _k.dispersion_block(src, col0, m, b0, clamp, _TINY, _LOG_TINY, scale,
+                                          cls, E, D, V)
+            smallest, nan = min(smallest, lo), nan or bad
         return smallest, nan
 
     # 0 log 0 = 0: the logs read max(p, tiny) when some p is <= 0 or NaN, which is known
