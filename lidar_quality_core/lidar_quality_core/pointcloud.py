@@ -25,6 +25,7 @@ __all__ = [
     "pointfield_datatype",
     "cloud_dtype",
     "cloud_to_structured",
+    "field_run_view",
     "read_fields",
     "check_xyz_fields",
     "valid_points",
@@ -219,6 +220,27 @@ def cloud_to_structured(msg) -> np.ndarray:
     if height == 1 or row_step == packed_row:
         return np.frombuffer(buf, dtype, count=n).reshape(shape)
     return np.ndarray(shape, dtype, buffer=buf, offset=0, strides=(row_step, point_step))
+
+
+def field_run_view(arr: np.ndarray, names: Sequence[str]) -> np.ndarray | None:
+    """``(N, len(names))`` float32 view of the fields ``names`` of the structured cloud
+    ``arr`` (as from :func:`cloud_to_structured`, records contiguous) when they are native
+    float32 fields at consecutive offsets (a run, as a network's per-class scores are
+    usually laid out), so that they are read in place; None for any other layout (then
+    gather them). Read-only when ``arr`` is."""
+    fields = arr.dtype.fields or {}
+    if (not names or not arr.size or not arr.flags.c_contiguous
+            or any(nm not in fields for nm in names)):
+        return None
+    f32 = np.dtype(np.float32)
+    off0 = fields[names[0]][1]
+    for k, nm in enumerate(names):
+        dt, off = fields[nm][:2]
+        if dt != f32 or off != off0 + 4 * k:
+            return None
+    view = np.ndarray((arr.size, len(names)), f32, buffer=arr.reshape(-1), offset=off0,
+                      strides=(arr.dtype.itemsize, 4))
+    return view if view.flags.aligned else None
 
 
 def _missing(name: str, dtype: np.dtype, where: str = "cloud") -> CloudFormatError:

@@ -102,9 +102,10 @@ from lidar_quality_core.model_store import models_dir
 from lidar_quality_core.parameters import group, param
 from lidar_quality_core.segment_quality_cdr import encode_segment_quality_array
 from lidar_quality_core.pointcloud import (CloudFormatError, PaddingNote, check_xyz_fields,
-                                            cloud_to_structured, finite_mask, pack_cloud,
-                                            set_cloud_data, valid_points)
+                                            cloud_to_structured, field_run_view, finite_mask,
+                                            pack_cloud, set_cloud_data, valid_points)
 from lidar_quality_core.lms import beams, segment_metrics
+from lidar_quality_core.lms.metric_kernels import point_sums
 from lidar_quality_core.lms.projection import RangeImageConfig
 from lidar_quality_core.lms.segment_metrics import SegmentResult, compute_segments
 
@@ -351,14 +352,18 @@ class LmsSettings:
 
 @dataclass
 class LmsInput:
-    """One decoded frame. ``xyz`` and ``probs`` are transposed views of coordinate- /
-    class-major (3, N) / (n, N) float32 arrays (what :func:`compute_segments` and the
-    output read fastest: one contiguous array per coordinate / class)."""
+    """One decoded frame. ``xyz`` is the transposed view of a coordinate-major (3, N)
+    float32 array (one contiguous array per coordinate: what :func:`compute_segments` and
+    the output read fastest); ``probs`` (N, n) the message's own float32 fields where they
+    lie one after the other in each point (read in place, not copied), else the transposed
+    view of a class-major (n, N) copy."""
 
     xyz: np.ndarray                   # (N, 3) float32, as received
     intensity: np.ndarray | None      # (N,) float32; None: the cloud has none
     ring: np.ndarray | None           # (N,) int32 image row (flipped unless ring_zero_top)
-    probs: np.ndarray                 # (N, n) float32, checked and renormalized
+    probs: np.ndarray                 # (N, n) float32, checked and renormalized: a
+                                      # read-only view into the message (float32 fields
+                                      # in a run, none changed) or class-major, transposed
     n_renormalized: int               # points whose probabilities were renormalized
     n_invalid_points: int             # non-finite or (0, 0, 0) coordinates, or unusable
                                       # probabilities
@@ -445,8 +450,10 @@ def _ring(arr: np.ndarray, xyz: np.ndarray, valid: np.ndarray, settings: LmsSett
 
 def _probabilities(arr: np.ndarray, names, source: str
                    ) -> tuple[np.ndarray, bool, np.ndarray, np.ndarray]:
-    """(n, N) float32 class-major probabilities, whether any field was uint8, and per
-    point their sum and minimum (``_gather``)."""
+    """(N, n) float32 probabilities, whether any field was uint8, and per point their sum
+    and minimum. Float32 fields one after the other (the usual layout) are read in place:
+    a read-only (N, n) view into the message (``field_run_view``); any other layout is
+    gathered (``_gather``) into a class-major copy, returned transposed."""
     fields = arr.dtype.fields or {}
     missing = [nm for nm in names if nm not in fields]
     if missing:
@@ -465,11 +472,15 @@ def _probabilities(arr: np.ndarray, names, source: str
         elif dt.kind != "f":
             raise CloudFormatError(f"probability field {nm!r} has type {dt}: expected "
                                    "float32/float64 or uint8 (value / 255)")
-    out = np.empty((len(names), arr.size), np.float32)
     # (no class: a zero sum, so that no point is usable)
     total, smallest = np.zeros(arr.size, np.float32), np.full(arr.size, np.inf, np.float32)
+    view = None if quantized else field_run_view(arr, names)
+    if view is not None:
+        point_sums(view, total, smallest)
+        return view, quantized, total, smallest
+    out = np.empty((len(names), arr.size), np.float32)
     _gather(arr.reshape(-1), names, out, sums=(total, smallest))
-    return out, quantized, total, smallest
+    return out.T, quantized, total, smallest
 
 
 def _gather(flat: np.ndarray, names, out: np.ndarray, block: int = 4096, sums=None) -> None:
@@ -508,19 +519,19 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None,
     n_padding = int(np.count_nonzero(finite_mask(xyz) & ~points_ok))
     ring, ring_issue, ring_name = _ring(arr, xyz, points_ok, settings, beam_table)
     if probabilities_msg is None:
-        probs_cm, quantized, s, smallest = _probabilities(arr, settings.field_names(),
-                                                          "input/points")
+        probs, quantized, s, smallest = _probabilities(arr, settings.field_names(),
+                                                       "input/points")
     else:
         parr = cloud_to_structured(probabilities_msg)
         if parr.size != N:
             raise CloudFormatError(f"input/probabilities has {parr.size} points, "
                                    f"input/points {N}: they must match point for point")
-        probs_cm, quantized, s, smallest = _probabilities(parr, settings.field_names(),
-                                                          "input/probabilities")
-    n = probs_cm.shape[0]
+        probs, quantized, s, smallest = _probabilities(parr, settings.field_names(),
+                                                       "input/probabilities")
+    n = probs.shape[1]
     if N:
         with np.errstate(invalid="ignore", over="ignore"):
-            # s, smallest: probs_cm.sum(axis=0), .min(axis=0), taken during the gather
+            # s, smallest: the probabilities' sum and minimum per point
             usable = np.isfinite(s)            # NaN / inf anywhere makes the sum so
             usable &= s > 0
             usable &= smallest >= 0
@@ -528,11 +539,14 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None,
             renorm = np.abs(s - np.float32(1.0)) > np.float32(tol)
         renorm &= usable
         n_renorm = int(np.count_nonzero(renorm))
+        bad = ~usable
+        n_bad = int(np.count_nonzero(bad))
+        if (n_renorm or n_bad) and not (probs.flags.f_contiguous and probs.flags.writeable):
+            probs = np.ascontiguousarray(probs.T).T     # a view into the message: a copy
+        probs_cm = probs.T
         if n_renorm:
             idx = np.flatnonzero(renorm)
             probs_cm[:, idx] /= s[idx]
-        bad = ~usable
-        n_bad = int(np.count_nonzero(bad))
         if n_bad:
             probs_cm[:, bad] = 0.0
         valid = usable
@@ -541,7 +555,7 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None,
         n_renorm = n_bad = 0
         valid = np.zeros(0, bool)
     shape = tuple(arr.shape) if arr.ndim == 2 else (1, N)
-    return LmsInput(xyz=xyz, intensity=intensity, ring=ring, probs=probs_cm.T,
+    return LmsInput(xyz=xyz, intensity=intensity, ring=ring, probs=probs,
                     n_renormalized=n_renorm, n_invalid_points=int(N - np.count_nonzero(valid)),
                     valid=valid, n_bad_probabilities=n_bad, quantized=quantized, shape=shape,
                     ring_issue=ring_issue, n_padding=n_padding, ring_field=ring_name,

@@ -868,3 +868,32 @@ def test_xyz_intensity_view_equals_the_copies(layout):
     assert (not got[0].flags.owndata and not got[0].flags.writeable) == viewed, layout
     xyz = want[0].copy()
     assert padding_counts(got[0], got[1]) == pc.blank_padding(xyz, want[1])
+
+
+def test_field_run_view():
+    from lidar_quality_core.pointcloud import field_run_view
+
+    names = ["a", "b", "c"]
+    dt = np.dtype([("x", "<f4"), ("a", "<f4"), ("b", "<f4"), ("c", "<f4"), ("r", "<u2"),
+                   ("pad", "<u2")])
+    arr = np.zeros((2, 5), dt)
+    for k, nm in enumerate(names):
+        arr[nm] = np.arange(10, dtype=np.float32).reshape(2, 5) + 100 * k
+    v = field_run_view(arr, names)
+    assert v.shape == (10, 3) and np.shares_memory(v, arr)
+    np.testing.assert_array_equal(v, np.stack([arr[nm].reshape(-1) for nm in names], 1))
+    assert field_run_view(arr, ["b", "c"])[3, 1] == 203
+    ro = arr.copy()
+    ro.flags.writeable = False
+    assert not field_run_view(ro, names).flags.writeable
+    assert field_run_view(arr, ["a", "c"]) is None                # not one after the other
+    assert field_run_view(arr, ["b", "a"]) is None                # not in order
+    assert field_run_view(arr, ["a", "nope"]) is None
+    assert field_run_view(arr[:0], names) is None
+    assert field_run_view(arr[:, ::2], names) is None             # records not contiguous
+    for other in (">f4", "<f8"):
+        odt = np.dtype([(nm, other) for nm in names])
+        assert field_run_view(np.zeros(4, odt), names) is None
+    packed = np.dtype({"names": ["r", "a", "b"], "formats": ["u1", "<f4", "<f4"],
+                       "offsets": [0, 1, 5], "itemsize": 9})
+    assert field_run_view(np.zeros(4, packed), ["a", "b"]) is None  # unaligned floats

@@ -792,7 +792,45 @@ def test_probability_sums_taken_during_the_gather_are_numpys():
     arr["p_a"][:50], arr["p_c"][50:100], arr["p_d"][100:150] = np.nan, np.inf, -0.0
     arr["p_a"][150:200] = -0.0
     probs, quantized, total, smallest = _probabilities(arr, names, "input/points")
-    assert quantized
+    assert quantized and not np.shares_memory(probs, arr)     # gathered: mixed types
+    pcm = np.ascontiguousarray(probs.T)
     with np.errstate(invalid="ignore"):
-        assert total.tobytes() == probs.sum(axis=0).tobytes()
-        assert smallest.tobytes() == probs.min(axis=0).tobytes()
+        assert total.tobytes() == pcm.sum(axis=0).tobytes()
+        assert smallest.tobytes() == pcm.min(axis=0).tobytes()
+
+
+def test_float32_probability_fields_in_a_run_are_read_in_place(frames):
+    """Float32 fields one after the other: decode reads them in the message (a read-only
+    view, no copy), with the sums and minima of numpy's reductions (NaN, inf, -0.0); a
+    frame with points to renormalize or drop works on a copy, the message untouched."""
+    from lms_ros.pipeline import _probabilities
+
+    f = frames[0]
+    p = noisy_probs(f, 6)
+    N = len(p)
+    p[:20, 0], p[20:40, 1], p[40:60, 2] = np.nan, np.inf, -0.0
+    p[60:80] *= np.float32(1.5)                                  # to renormalize
+    msg = cloud(f.xyz, p, intensity=f.intensity)                 # no ring: aligned run
+    arr = cloud_to_structured(msg)
+    names = _settings().field_names()
+    ro = arr.copy()
+    ro.flags.writeable = False
+    probs, quantized, total, smallest = _probabilities(ro, names, "input/points")
+    assert not quantized and np.shares_memory(probs, ro) and not probs.flags.writeable
+    np.testing.assert_array_equal(probs, p)
+    pcm = np.ascontiguousarray(p.T)
+    with np.errstate(invalid="ignore"):
+        assert total.tobytes() == pcm.sum(axis=0).tobytes()
+        assert smallest.tobytes() == pcm.min(axis=0).tobytes()
+
+    before = bytes(msg.data)
+    inp = decode(msg, _settings(use_ring=False))
+    assert inp.n_bad_probabilities == 40 and inp.n_renormalized >= 20
+    assert bytes(msg.data) == before and not np.shares_memory(inp.probs, arr)
+    np.testing.assert_array_equal(inp.probs[:40], 0.0)
+    np.testing.assert_allclose(inp.probs[60:80].sum(axis=1), 1.0, rtol=1e-5)
+    clean = cloud(f.xyz[80:], p[80:], intensity=f.intensity[80:])
+    inp = decode(clean, _settings(use_ring=False))
+    assert inp.n_bad_probabilities == 0 and inp.n_renormalized == 0
+    assert np.shares_memory(inp.probs, inp.cloud)                # the message's own bytes
+    np.testing.assert_array_equal(inp.probs, p[80:])

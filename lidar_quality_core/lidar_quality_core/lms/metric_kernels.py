@@ -10,6 +10,8 @@ results are bit-identical; the tests check them against numpy references:
   argmax, top two probabilities and the entropy, summed in float32 in class order, with
   the logarithms taken in the same pass by :func:`~lidar_quality_core.float32_log.log_f32`
   (numpy's float32 ``log``, bit for bit, vectorized with the rest), then ``D`` and ``V``.
+* :func:`point_sums`: every point's sum and smallest probability, read in place (the
+  checks of the node's decode), as numpy's reductions over the classes.
 * :func:`read_sources`: the point and the class each pixel of the filled image reads.
 * :func:`region_sums`: the float64 sums of the measures, their squares and the
   probabilities per region (segment boundary / interior), and the pixel counts.
@@ -27,7 +29,7 @@ from numba import njit, types
 from lidar_quality_core.float32_log import log_f32
 from lidar_quality_core.kernel_types import array_in as _in, array_out as _out
 
-__all__ = ["transpose_block", "dispersion_block", "read_sources", "region_sums",
+__all__ = ["transpose_block", "dispersion_block", "point_sums", "read_sources", "region_sums",
            "segment_features", "point_segments", "N_MEASURES", "N_STATS"]
 
 #: measures summed by :func:`region_sums`: E, D, V, x, y, z, intensity, range
@@ -39,7 +41,27 @@ _F32, _F64, _I32, _I64, _BOOL = (types.float32, types.float64, types.int32, type
                                  types.boolean)
 
 
-@njit(types.void(_in(_F32, 2), _I64, _out(_F32, 2)), cache=True, nogil=True)
+@njit(types.void(_in(_F32, 2, "A"), _out(_F32), _out(_F32)), cache=True, nogil=True)
+def point_sums(probs, total, smallest):
+    """``total`` = ``probs.sum(axis=1)`` and ``smallest`` = ``probs.min(axis=1)`` of
+    ``probs`` (N, n >= 1; any layout: a view into a message's records), each summed in class
+    order from 0.0 (so -0.0 + -0.0 sums to 0.0) and NaN-propagating: the bits of numpy's
+    reductions of the class-major array (``np.add.reduce(pcm, axis=0)``,
+    ``np.minimum.reduce``)."""
+    n = probs.shape[1]
+    for i in range(probs.shape[0]):
+        row = probs[i]
+        s = np.float32(0.0)
+        lo = row[0]
+        for c in range(n):
+            v = row[c]
+            s += v
+            lo = np.minimum(lo, v)
+        total[i] = s
+        smallest[i] = lo
+
+
+@njit(types.void(_in(_F32, 2, "A"), _I64, _out(_F32, 2)), cache=True, nogil=True)
 def transpose_block(probs, b0, out):
     """``out`` (n, m) = rows ``b0 .. b0 + m - 1`` of ``probs`` (N, n), transposed."""
     n, m = out.shape

@@ -135,9 +135,22 @@ def metric_names(n_classes: int, class_names: Sequence[str] | None = None) -> tu
     return tuple(names)
 
 
+def _class_major(probs: np.ndarray) -> bool:
+    return probs.flags.f_contiguous and not probs.flags.c_contiguous
+
+
+def _readable(probs: np.ndarray) -> np.ndarray:
+    """``probs`` (N, n) float32 as the kernels read it without a copy: class-major (the
+    transposed view of an (n, N) array) or each point's classes contiguous (row-major, or
+    rows of a message's records); anything else copied row-major."""
+    if _class_major(probs) or probs.strides[1] == probs.itemsize or probs.shape[1] == 1:
+        return probs
+    return np.ascontiguousarray(probs)
+
+
 def dispersion(probs: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Per point from probabilities (N, n) float32, row-major or the transposed view of a
-    class-major (n, N) array (not modified): ``(argmax, E, D, V)`` (see the module doc;
+    """Per point from probabilities (N, n) float32, any layout (not modified; see
+    :func:`_readable`): ``(argmax, E, D, V)`` (see the module doc;
     a NaN probability makes the point's argmax 0 and E, D, V NaN)."""
     probs = np.asarray(probs).astype(np.float32, copy=False)
     N, n = probs.shape
@@ -149,11 +162,10 @@ def dispersion(probs: np.ndarray) -> tuple[np.ndarray, ...]:
     D = np.empty(N, dtype=np.float32)
     V = np.empty(N, dtype=np.float32)
     scale = np.float32(-1.0 / np.log(n))
-    class_major = probs.flags.f_contiguous and not probs.flags.c_contiguous
+    probs = _readable(probs)
+    class_major = _class_major(probs)
     if class_major:
         pcm = probs.T
-    else:
-        probs = np.ascontiguousarray(probs)
     step = max(1, _DISPERSION_BLOCK // n)
     tbuf = None if class_major else np.empty(step * n, dtype=np.float32)
 
@@ -267,8 +279,9 @@ def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=Non
                      ) -> SegmentResult:
     """Segments, metrics and point maps of one cloud (see the module doc).
 
-    ``xyz`` (N, 3); ``probs`` (N, n) softmax probabilities in [0, 1], float32 row-major
-    or the transposed view of a class-major (n, N) array, neither copied as a whole in
+    ``xyz`` (N, 3); ``probs`` (N, n) softmax probabilities in [0, 1], float32, read in
+    place when class-major (the transposed view of an (n, N) array) or with each point's
+    classes contiguous (row-major, or a view into a message's records), never copied in
     float64 (quantized inputs are the caller's to scale); ``ring`` (N,) optional rows
     (ring 0 = top beam); ``intensity`` (N,) optional; ``min_points``: smallest SP of a
     kept segment; ``class_names`` only name the N_c / P_c metrics.
@@ -292,9 +305,7 @@ def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=Non
 
     proj = project(xyz, cfg, ring)
     probs = probs.astype(np.float32, copy=False)
-    # a class-major input (transposed view) is read as it is, anything else row-major
-    if not (probs.flags.f_contiguous and not probs.flags.c_contiguous):
-        probs = np.ascontiguousarray(probs)
+    probs = _readable(probs)
     point_class, E, D, V = dispersion(probs)
     R, C = cfg.shape
     idx = _i32(proj.index).reshape(-1)

@@ -426,3 +426,20 @@ def test_point_segments_match_numpy(seed):
     mk.point_segments(index, valid, pixel, row, col, seg, pred, point_class, C, ps, n_points)
     np.testing.assert_array_equal(ps, want[0])
     np.testing.assert_array_equal(n_points, want[1])
+
+
+@pytest.mark.parametrize("n", [1, 2, 20])
+def test_point_sums_are_numpys_reductions(n):
+    rng = np.random.default_rng(n)
+    p = awkward_probs(rng, 3000, n)
+    p[:10] = -0.0                                      # numpy sums from +0.0
+    rec = np.zeros((3000, n + 3), np.float32)          # a view with strided rows
+    rec[:, 2:2 + n] = p
+    view = rec[:, 2:2 + n]
+    total, smallest = np.empty(3000, np.float32), np.empty(3000, np.float32)
+    mk.point_sums(view, total, smallest)
+    pcm = np.ascontiguousarray(p.T)
+    with np.errstate(all="ignore"):
+        assert total.tobytes() == np.add.reduce(pcm, axis=0).tobytes()
+        assert smallest.tobytes() == np.minimum.reduce(pcm, axis=0).tobytes()
+    mk.point_sums(view[:0], total[:0], smallest[:0])
