@@ -227,7 +227,8 @@ def field_run_view(arr: np.ndarray, names: Sequence[str]) -> np.ndarray | None:
     ``arr`` (as from :func:`cloud_to_structured`, records contiguous) when they are native
     float32 fields at consecutive offsets (a run, as a network's per-class scores are
     usually laid out), so that they are read in place; None for any other layout (then
-    gather them). Read-only when ``arr`` is."""
+    gather them). Read-only when ``arr`` is; not aligned when the record packs the run at
+    an offset that is not a multiple of 4 (after a uint16 ring, say)."""
     fields = arr.dtype.fields or {}
     if (not names or not arr.size or not arr.flags.c_contiguous
             or any(nm not in fields for nm in names)):
@@ -238,9 +239,8 @@ def field_run_view(arr: np.ndarray, names: Sequence[str]) -> np.ndarray | None:
         dt, off = fields[nm][:2]
         if dt != f32 or off != off0 + 4 * k:
             return None
-    view = np.ndarray((arr.size, len(names)), f32, buffer=arr.reshape(-1), offset=off0,
+    return np.ndarray((arr.size, len(names)), f32, buffer=arr.reshape(-1), offset=off0,
                       strides=(arr.dtype.itemsize, 4))
-    return view if view.flags.aligned else None
 
 
 def _missing(name: str, dtype: np.dtype, where: str = "cloud") -> CloudFormatError:

@@ -896,4 +896,8 @@ def test_field_run_view():
         assert field_run_view(np.zeros(4, odt), names) is None
     packed = np.dtype({"names": ["r", "a", "b"], "formats": ["u1", "<f4", "<f4"],
                        "offsets": [0, 1, 5], "itemsize": 9})
-    assert field_run_view(np.zeros(4, packed), ["a", "b"]) is None  # unaligned floats
+    un = np.zeros(4, packed)
+    un["a"], un["b"] = [1, 2, 3, 4], [5, 6, 7, 8]
+    v = field_run_view(un, ["a", "b"])                            # after a uint8: unaligned
+    assert not v.flags.aligned and np.shares_memory(v, un)
+    np.testing.assert_array_equal(v, [[1, 5], [2, 6], [3, 7], [4, 8]])

@@ -41,7 +41,11 @@ _F32, _F64, _I32, _I64, _BOOL = (types.float32, types.float64, types.int32, type
                                  types.boolean)
 
 
-@njit(types.void(_in(_F32, 2, "A"), _out(_F32), _out(_F32)), cache=True, nogil=True)
+# probabilities read in place: any layout, aligned or not (a message's packed records)
+_PROBS_VIEW = _in(_F32, 2, "A", aligned=False)
+
+
+@njit(types.void(_PROBS_VIEW, _out(_F32), _out(_F32)), cache=True, nogil=True)
 def point_sums(probs, total, smallest):
     """``total`` = ``probs.sum(axis=1)`` and ``smallest`` = ``probs.min(axis=1)`` of
     ``probs`` (N, n >= 1; any layout: a view into a message's records), each summed in class
@@ -61,7 +65,7 @@ def point_sums(probs, total, smallest):
         smallest[i] = lo
 
 
-@njit(types.void(_in(_F32, 2, "A"), _I64, _out(_F32, 2)), cache=True, nogil=True)
+@njit(types.void(_PROBS_VIEW, _I64, _out(_F32, 2)), cache=True, nogil=True)
 def transpose_block(probs, b0, out):
     """``out`` (n, m) = rows ``b0 .. b0 + m - 1`` of ``probs`` (N, n), transposed."""
     n, m = out.shape
@@ -143,7 +147,7 @@ def read_sources(index, point_class, near, source, pred):
 _SUMS_SIGS = [types.void(_in(_I32), _in(_I32), _in(_I32), _in(_BOOL), _I64, _in(_F32),
                          _in(_F32), _in(_F32), *[_in(f, 1, "A")] * 5, p, _I64,
                          _out(_F64, 2), _out(_F64, 2), _out(_I64), _out(_I64))
-              for f in (_F32, _F64) for p in (_in(_F32, 2, "A"), _out(_F32, 2))]
+              for f in (_F32, _F64) for p in (_PROBS_VIEW, _out(_F32, 2))]
 
 
 @njit(inline="always")
