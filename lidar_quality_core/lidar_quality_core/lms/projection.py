@@ -226,8 +226,9 @@ _DEG = 180.0 / math.pi  # np.degrees' factor
 (_A0, _A1, _A2, _A3, _A4, _A5, _A6, _A7, _A8, _A9, _A10, _A11,
  _A12) = ((-1.0) ** k / (2 * k + 1) for k in range(13))
 _TAN_PI_8 = math.tan(math.pi / 8)
-# a column coordinate this close to a column edge is computed again with libm's atan2
-# (the approximation is within 1e-11 rad: 1e-8 columns for 2048 columns)
+# a column coordinate (columns) or elevation (degrees) this close to an edge is computed
+# again with libm's atan2 / asin (the approximations are within 1e-11 rad: 1e-8 columns
+# for 2048 columns, 1e-9 degrees)
 _EDGE_MARGIN = 1e-6
 
 
@@ -261,15 +262,42 @@ def _column_coordinates(x, y, scale, offset, out):
         out[i] = a * scale + offset
 
 
+@njit(inline="always")
+def _elevation_sine(xi, yi, zi):
+    """``clip(z / r, -1, 1)`` (``z`` itself where ``r`` is not positive)."""
+    r = math.sqrt(xi * xi + yi * yi + zi * zi)
+    s = zi / (r if r > 0.0 else 1.0)
+    return min(max(s, -1.0), 1.0)
+
+
 @njit([(_in(t), _in(t), _in(t), _out(types.float64)) for t in _COORDS],
-      cache=True, nogil=True)
-def _elevation_sine(x, y, z, out):
-    """``clip(z / r, -1, 1)`` per point (``z`` itself where ``r`` is not positive)."""
-    for i in range(len(x)):
-        xi, yi, zi = np.float64(x[i]), np.float64(y[i]), np.float64(z[i])
-        r = math.sqrt(xi * xi + yi * yi + zi * zi)
-        s = zi / (r if r > 0.0 else 1.0)
-        out[i] = min(max(s, -1.0), 1.0)
+      cache=True, nogil=True, error_model="numpy")
+def _elevations(x, y, z, out):
+    """``asin(clip(z / r, -1, 1))`` per point with an approximate asin (within 1e-11 rad:
+    atan of sine over cosine, vectorized, where numpy's float64 arcsin calls libm point by
+    point); :func:`_place` redoes it exactly near a row edge."""
+    for i in range(x.shape[0]):
+        s = _elevation_sine(np.float64(x[i]), np.float64(y[i]), np.float64(z[i]))
+        a = abs(s)
+        c = math.sqrt((1.0 - a) * (1.0 + a))
+        steep = a > c
+        e = _atan_ratio(c if steep else a, a if steep else c)
+        e = math.pi / 2 - e if steep else e
+        out[i] = -e if s < 0.0 else e
+
+
+@njit(inline="always")
+def _edges_above(e, edges, lut, lut_scale):
+    """The number of row edges >= ``e`` (degrees): the table's guess, then exact
+    comparisons (a binary search mispredicts its branches too often)."""
+    t = (edges[0] - e) * lut_scale
+    cnt = lut[np.int64(min(max(t, 0.0), len(lut) - 1.0))]
+    cnt += edges[cnt] >= e
+    while edges[cnt] >= e:
+        cnt += 1
+    while cnt > 0 and edges[cnt - 1] < e:
+        cnt -= 1
+    return cnt
 
 
 @njit([(_in(t), _in(t), _in(t), _in(types.int64), _in(types.float64),
@@ -283,7 +311,8 @@ def _place(x, y, z, ring, el, edges, lut, lut_scale, az, R, C, scale, offset,
     """Row, column, pixel, range and flags per point, and the nearest point per pixel.
 
     Rows from ``ring`` if it has one entry per point, else from the elevations ``el``
-    (radians, to degrees as ``np.degrees`` does) binned by ``edges`` (the row edges, then
+    (radians from :func:`_elevations`, recomputed with ``math.asin`` within
+    ``_EDGE_MARGIN`` degrees of an edge; to degrees as ``np.degrees`` does) binned by ``edges`` (the row edges, then
     -inf) with the table ``lut`` / ``lut_scale`` of :func:`_row_lookup`. ``az`` is
     ``atan2(y, x) * scale + offset`` from :func:`_column_coordinates` (its floor is the
     column; recomputed with ``math.atan2`` within ``_EDGE_MARGIN`` of an edge, so that
@@ -304,16 +333,13 @@ def _place(x, y, z, ring, el, edges, lut, lut_scale, az, R, C, scale, offset,
                 if 0 <= ring[i] < R:
                     rw = ring[i]
             else:
-                # row + 1 = the number of edges >= el: the table's guess, then exact
-                # comparisons (a binary search mispredicts its branches too often)
+                # row + 1 = the number of edges >= the elevation
                 e = el[i] * _DEG
-                t = (edges[0] - e) * lut_scale
-                cnt = lut[np.int64(min(max(t, 0.0), len(lut) - 1.0))]
-                cnt += edges[cnt] >= e
-                while edges[cnt] >= e:
-                    cnt += 1
-                while cnt > 0 and edges[cnt - 1] < e:
-                    cnt -= 1
+                cnt = _edges_above(e, edges, lut, lut_scale)
+                if not (e - edges[cnt] > _EDGE_MARGIN
+                        and (cnt == 0 or edges[cnt - 1] - e > _EDGE_MARGIN)):
+                    e = math.asin(_elevation_sine(xi, yi, zi)) * _DEG     # libm's, exact
+                    cnt = _edges_above(e, edges, lut, lut_scale)
                 if 0 < cnt <= R:
                     rw = cnt - 1
         if rw < 0:
@@ -400,9 +426,7 @@ def project(xyz, cfg: RangeImageConfig, ring=None) -> Projection:
     else:
         ring = np.zeros(0, dtype=np.int64)
         el = np.empty(n)
-        _elevation_sine(x, y, z, el)
-        with np.errstate(invalid="ignore"):
-            np.arcsin(el, out=el)
+        _elevations(x, y, z, el)
     az = np.empty(n)
     scale, offset = -0.5 * C / np.pi, 0.5 * C
     _column_coordinates(x, y, scale, offset, az)

@@ -324,3 +324,20 @@ def test_approximate_column_coordinates_stay_well_inside_the_exact_recheck_margi
     err = np.abs(u[ok] - ref[ok])
     err = np.minimum(err, np.abs(err - C))                         # +pi / -pi: the same edge
     assert err.max() < pj._EDGE_MARGIN / 100
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_approximate_elevations_stay_well_inside_the_exact_recheck_margin(dtype):
+    from lidar_quality_core.lms import projection as pj
+
+    rng = np.random.default_rng(4)
+    xyz = rng.normal(0, 1, (200_000, 3)) * [30, 30, 3]
+    xyz[:1000, :2] *= 1e-9                                         # near the poles
+    xyz[1000:1010] = 0.0
+    x, y, z = (np.ascontiguousarray(xyz[:, k].astype(dtype)) for k in range(3))
+    el = np.empty(len(x))
+    pj._elevations(x, y, z, el)
+    x, y, z = (v.astype(np.float64) for v in (x, y, z))
+    r = np.sqrt(x * x + y * y + z * z)
+    ref = np.arcsin(np.clip(z / np.where(r > 0, r, 1.0), -1.0, 1.0))
+    assert np.degrees(np.abs(el - ref)).max() < pj._EDGE_MARGIN / 100
