@@ -105,7 +105,6 @@ from lidar_quality_core.pointcloud import (CloudFormatError, PaddingNote, check_
                                             cloud_to_structured, field_run_view, finite_mask,
                                             pack_cloud, set_cloud_data, valid_points)
 from lidar_quality_core.lms import beams, segment_metrics
-from lidar_quality_core.lms.metric_kernels import point_sums
 from lidar_quality_core.lms.projection import RangeImageConfig
 from lidar_quality_core.lms.segment_metrics import SegmentResult, compute_segments
 
@@ -376,6 +375,8 @@ class LmsInput:
     n_padding: int = 0                # finite points at exactly (0, 0, 0): organized-cloud
                                       # padding (part of n_invalid_points)
     ring_field: str | None = None     # the ring field found in the cloud
+    dispersion: tuple | None = field(repr=False, default=None)  # (argmax, E, D, V) of
+                                      # probs when decode took them (segment_metrics)
     cloud: np.ndarray | None = field(repr=False, default=None)   # input/points as decoded
                                       # (structured, (N,) or (H, W))
 
@@ -449,11 +450,14 @@ def _ring(arr: np.ndarray, xyz: np.ndarray, valid: np.ndarray, settings: LmsSett
 
 
 def _probabilities(arr: np.ndarray, names, source: str
-                   ) -> tuple[np.ndarray, bool, np.ndarray, np.ndarray]:
-    """(N, n) float32 probabilities, whether any field was uint8, and per point their sum
-    and minimum. Float32 fields one after the other (the usual layout) are read in place:
-    a read-only (N, n) view into the message (``field_run_view``); any other layout is
-    gathered (``_gather``) into a class-major copy, returned transposed."""
+                   ) -> tuple[np.ndarray, bool, np.ndarray, np.ndarray, tuple | None]:
+    """(N, n) float32 probabilities, whether any field was uint8, per point their sum and
+    minimum, and their dispersion or None. Float32 fields one after the other (the usual
+    layout) are read in place: a read-only (N, n) view into the message
+    (``field_run_view``), the sums taken in the pass of their dispersion
+    (``segment_metrics.dispersion``: the metrics' per-point values); any other layout is
+    gathered (``_gather``, the sums during the gather) into a class-major copy, returned
+    transposed, the dispersion left to the metrics."""
     fields = arr.dtype.fields or {}
     missing = [nm for nm in names if nm not in fields]
     if missing:
@@ -476,11 +480,11 @@ def _probabilities(arr: np.ndarray, names, source: str
     total, smallest = np.zeros(arr.size, np.float32), np.full(arr.size, np.inf, np.float32)
     view = None if quantized else field_run_view(arr, names)
     if view is not None:
-        point_sums(view, total, smallest)
-        return view, quantized, total, smallest
+        disp = segment_metrics.dispersion(view, sums=(total, smallest))
+        return view, quantized, total, smallest, disp
     out = np.empty((len(names), arr.size), np.float32)
     _gather(arr.reshape(-1), names, out, sums=(total, smallest))
-    return out.T, quantized, total, smallest
+    return out.T, quantized, total, smallest, None
 
 
 def _gather(flat: np.ndarray, names, out: np.ndarray, block: int = 4096, sums=None) -> None:
@@ -519,15 +523,15 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None,
     n_padding = int(np.count_nonzero(finite_mask(xyz) & ~points_ok))
     ring, ring_issue, ring_name = _ring(arr, xyz, points_ok, settings, beam_table)
     if probabilities_msg is None:
-        probs, quantized, s, smallest = _probabilities(arr, settings.field_names(),
-                                                       "input/points")
+        probs, quantized, s, smallest, disp = _probabilities(arr, settings.field_names(),
+                                                             "input/points")
     else:
         parr = cloud_to_structured(probabilities_msg)
         if parr.size != N:
             raise CloudFormatError(f"input/probabilities has {parr.size} points, "
                                    f"input/points {N}: they must match point for point")
-        probs, quantized, s, smallest = _probabilities(parr, settings.field_names(),
-                                                       "input/probabilities")
+        probs, quantized, s, smallest, disp = _probabilities(parr, settings.field_names(),
+                                                             "input/probabilities")
     n = probs.shape[1]
     if N:
         with np.errstate(invalid="ignore", over="ignore"):
@@ -541,8 +545,10 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None,
         n_renorm = int(np.count_nonzero(renorm))
         bad = ~usable
         n_bad = int(np.count_nonzero(bad))
-        if (n_renorm or n_bad) and not (probs.flags.f_contiguous and probs.flags.writeable):
-            probs = np.ascontiguousarray(probs.T).T     # a view into the message: a copy
+        if n_renorm or n_bad:
+            disp = None                                 # of probabilities about to change
+            if not (probs.flags.f_contiguous and probs.flags.writeable):
+                probs = np.ascontiguousarray(probs.T).T     # a view into the message: a copy
         probs_cm = probs.T
         if n_renorm:
             idx = np.flatnonzero(renorm)
@@ -555,7 +561,7 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None,
         n_renorm = n_bad = 0
         valid = np.zeros(0, bool)
     shape = tuple(arr.shape) if arr.ndim == 2 else (1, N)
-    return LmsInput(xyz=xyz, intensity=intensity, ring=ring, probs=probs,
+    return LmsInput(xyz=xyz, intensity=intensity, ring=ring, probs=probs, dispersion=disp,
                     n_renormalized=n_renorm, n_invalid_points=int(N - np.count_nonzero(valid)),
                     valid=valid, n_bad_probabilities=n_bad, quantized=quantized, shape=shape,
                     ring_issue=ring_issue, n_padding=n_padding, ring_field=ring_name,
@@ -582,7 +588,8 @@ def frame_metrics(inp: LmsInput, settings: LmsSettings,
             inten = full
     return compute_segments(xyz, inp.probs, settings.range_config(), ring=inp.ring,
                             intensity=inten, min_points=settings.min_segment_points,
-                            class_names=settings.class_names)
+                            class_names=settings.class_names,
+                            point_dispersion=inp.dispersion)
 
 
 def default_model_paths() -> tuple[Path, Path]:

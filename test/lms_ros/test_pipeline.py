@@ -7,7 +7,7 @@ from lidar_quality_core.pointcloud import (CloudFormatError, cloud_to_structured
                                           read_fields)
 from lms_ros.pipeline import (CLASS_NAMES, NO_LABEL, OUTPUT_FIELDS, RESULT_FIELDS, LmsProcessor,
                               LmsSettings, decode, default_model_paths, frame_metrics)
-from lidar_quality_core.lms.segment_metrics import compute_segments, to_points
+from lidar_quality_core.lms.segment_metrics import compute_segments, dispersion, to_points
 from lms_scans import COLS, cloud, frame_cloud, scans, train_models
 from lms_scans import frame_probs as noisy_probs
 from lms_scans import settings as _settings
@@ -791,8 +791,8 @@ def test_probability_sums_taken_during_the_gather_are_numpys():
     arr["p_d"] = rng.random(N)
     arr["p_a"][:50], arr["p_c"][50:100], arr["p_d"][100:150] = np.nan, np.inf, -0.0
     arr["p_a"][150:200] = -0.0
-    probs, quantized, total, smallest = _probabilities(arr, names, "input/points")
-    assert quantized and not np.shares_memory(probs, arr)     # gathered: mixed types
+    probs, quantized, total, smallest, disp = _probabilities(arr, names, "input/points")
+    assert quantized and not np.shares_memory(probs, arr) and disp is None   # gathered
     pcm = np.ascontiguousarray(probs.T)
     with np.errstate(invalid="ignore"):
         assert total.tobytes() == pcm.sum(axis=0).tobytes()
@@ -815,9 +815,11 @@ def test_float32_probability_fields_in_a_run_are_read_in_place(frames):
     names = _settings().field_names()
     ro = arr.copy()
     ro.flags.writeable = False
-    probs, quantized, total, smallest = _probabilities(ro, names, "input/points")
+    probs, quantized, total, smallest, disp = _probabilities(ro, names, "input/points")
     assert not quantized and np.shares_memory(probs, ro) and not probs.flags.writeable
     np.testing.assert_array_equal(probs, p)
+    for got, want in zip(disp, dispersion(np.ascontiguousarray(p))):  # taken in the pass
+        assert got.tobytes() == want.tobytes()
     pcm = np.ascontiguousarray(p.T)
     with np.errstate(invalid="ignore"):
         assert total.tobytes() == pcm.sum(axis=0).tobytes()
@@ -826,6 +828,7 @@ def test_float32_probability_fields_in_a_run_are_read_in_place(frames):
     before = bytes(msg.data)
     inp = decode(msg, _settings(use_ring=False))
     assert inp.n_bad_probabilities == 40 and inp.n_renormalized >= 20
+    assert inp.dispersion is None                                # of the corrected copy
     assert bytes(msg.data) == before and not np.shares_memory(inp.probs, arr)
     np.testing.assert_array_equal(inp.probs[:40], 0.0)
     np.testing.assert_allclose(inp.probs[60:80].sum(axis=1), 1.0, rtol=1e-5)
@@ -834,3 +837,7 @@ def test_float32_probability_fields_in_a_run_are_read_in_place(frames):
     assert inp.n_bad_probabilities == 0 and inp.n_renormalized == 0
     assert np.shares_memory(inp.probs, inp.cloud)                # the message's own bytes
     np.testing.assert_array_equal(inp.probs, p[80:])
+    s = _settings(use_ring=False)
+    with_pass = frame_metrics(inp, s)
+    inp.dispersion = None
+    assert with_pass.features.tobytes() == frame_metrics(inp, s).features.tobytes()

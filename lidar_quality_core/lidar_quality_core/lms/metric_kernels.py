@@ -9,9 +9,8 @@ results are bit-identical; the tests check them against numpy references:
 * :func:`dispersion_block` (after :func:`transpose_block` for row-major probabilities):
   argmax, top two probabilities and the entropy, summed in float32 in class order, with
   the logarithms taken in the same pass by :func:`~lidar_quality_core.float32_log.log_f32`
-  (numpy's float32 ``log``, bit for bit, vectorized with the rest), then ``D`` and ``V``.
-* :func:`point_sums`: every point's sum and smallest probability, read in place (the
-  checks of the node's decode), as numpy's reductions over the classes.
+  (numpy's float32 ``log``, bit for bit, vectorized with the rest), then ``D`` and ``V``,
+  and each point's sum and minimum of its probabilities (the node's probability checks).
 * :func:`read_sources`: the point and the class each pixel of the filled image reads.
 * :func:`region_sums`: the float64 sums of the measures, their squares and the
   probabilities per region (segment boundary / interior), and the pixel counts.
@@ -29,7 +28,7 @@ from numba import njit, types
 from lidar_quality_core.float32_log import log_f32
 from lidar_quality_core.kernel_types import array_in as _in, array_out as _out
 
-__all__ = ["transpose_block", "dispersion_block", "point_sums", "read_sources", "region_sums",
+__all__ = ["transpose_block", "dispersion_block", "read_sources", "region_sums",
            "segment_features", "point_segments", "N_MEASURES", "N_STATS"]
 
 #: measures summed by :func:`region_sums`: E, D, V, x, y, z, intensity, range
@@ -45,26 +44,6 @@ _F32, _F64, _I32, _I64, _BOOL = (types.float32, types.float64, types.int32, type
 _PROBS_VIEW = _in(_F32, 2, "A", aligned=False)
 
 
-@njit(types.void(_PROBS_VIEW, _out(_F32), _out(_F32)), cache=True, nogil=True)
-def point_sums(probs, total, smallest):
-    """``total`` = ``probs.sum(axis=1)`` and ``smallest`` = ``probs.min(axis=1)`` of
-    ``probs`` (N, n >= 1; any layout: a view into a message's records), each summed in class
-    order from 0.0 (so -0.0 + -0.0 sums to 0.0) and NaN-propagating: the bits of numpy's
-    reductions of the class-major array (``np.add.reduce(pcm, axis=0)``,
-    ``np.minimum.reduce``)."""
-    n = probs.shape[1]
-    for i in range(probs.shape[0]):
-        row = probs[i]
-        s = np.float32(0.0)
-        lo = row[0]
-        for c in range(n):
-            v = row[c]
-            s += v
-            lo = np.minimum(lo, v)
-        total[i] = s
-        smallest[i] = lo
-
-
 @njit(types.void(_PROBS_VIEW, _I64, _out(_F32, 2)), cache=True, nogil=True)
 def transpose_block(probs, b0, out):
     """``out`` (n, m) = rows ``b0 .. b0 + m - 1`` of ``probs`` (N, n), transposed."""
@@ -76,24 +55,30 @@ def transpose_block(probs, b0, out):
 
 
 @njit(types.Tuple((_F32, _BOOL))(_in(_F32, 2), _I64, _I64, _I64, _BOOL, _F32, _F32,
-                                  _F32, _out(_I32), _out(_F32), _out(_F32), _out(_F32)),
+                                  _F32, _out(_I32), _out(_F32), _out(_F32), _out(_F32),
+                                  _out(_F32), _out(_F32)),
       cache=True, nogil=True, error_model="numpy")
-def dispersion_block(pcm, col0, m, b0, clamp, tiny, log_tiny, scale, cls, E, D, V):
+def dispersion_block(pcm, col0, m, b0, clamp, tiny, log_tiny, scale, cls, E, D, V, total,
+                     smallest):
     """Points ``b0 .. b0 + m - 1`` from their class-major probabilities
     ``pcm[:, col0:col0 + m]`` (n > 1 classes): writes ``cls`` (argmax),
     ``E`` = ``scale * sum_c p_c log p_c`` (summed in class order, ``log`` =
     :func:`~lidar_quality_core.float32_log.log_f32`, numpy's bits; with ``clamp``, a
     probability below ``tiny`` has the log ``log_tiny``), ``V = 1 - p1``
     and ``D = V + p2``; a point with a NaN probability gets class 0 and a NaN ``p1``, as
-    numpy's max and argmax-by-equality did. Returns the smallest probability (valid when
-    none is NaN) and whether some point has a NaN probability, found as a NaN entropy
-    (with ``clamp`` no other term is NaN: each is finite or +inf).
+    numpy's max and argmax-by-equality did; ``total`` and ``smallest``, each point's sum
+    (in class order from +0.0) and minimum (NaN-propagating) of its probabilities: the
+    bits of numpy's ``add`` / ``minimum`` reductions of the class-major array. Returns the
+    smallest probability (valid when none is NaN) and whether some point has a NaN
+    probability, found as a NaN entropy (with ``clamp`` no other term is NaN: each is
+    finite or +inf).
 
     Class by class over the block, the running sums and top two of each point in small
     arrays: every loop is sequential and branch-free (vectorized); the top two's branches
     would mispredict on every other probability."""
     n = pcm.shape[0]
     e = np.zeros(m, np.float32)
+    tot = np.zeros(m, np.float32)
     p1 = np.full(m, -np.inf, np.float32)
     p2 = np.full(m, -np.inf, np.float32)
     lo = np.full(m, np.inf, np.float32)
@@ -106,6 +91,7 @@ def dispersion_block(pcm, col0, m, b0, clamp, tiny, log_tiny, scale, cls, E, D, 
             t = log_f32(v)
             t = log_tiny if clamp and v < tiny else t   # np.maximum(p, tiny); NaN stays
             e[j] += v * t
+            tot[j] += v
             lo[j] = np.minimum(lo[j], v)
             a = p1[j]
             b = p2[j]
@@ -127,6 +113,8 @@ def dispersion_block(pcm, col0, m, b0, clamp, tiny, log_tiny, scale, cls, E, D, 
         vj = one - (nan if bad else p1[j])
         V_b[j] = vj
         D_b[j] = vj + p2[j]
+    total[b0:b0 + m] = tot
+    smallest[b0:b0 + m] = lo
     return lo.min(), any_nan
 
 

@@ -148,15 +148,24 @@ def _readable(probs: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(probs)
 
 
-def dispersion(probs: np.ndarray) -> tuple[np.ndarray, ...]:
+def dispersion(probs: np.ndarray, sums: tuple[np.ndarray, np.ndarray] | None = None
+               ) -> tuple[np.ndarray, ...]:
     """Per point from probabilities (N, n) float32, any layout (not modified; see
     :func:`_readable`): ``(argmax, E, D, V)`` (see the module doc;
-    a NaN probability makes the point's argmax 0 and E, D, V NaN)."""
+    a NaN probability makes the point's argmax 0 and E, D, V NaN). ``sums``: (N,) float32
+    ``(total, smallest)`` filled in the same pass with each point's sum and minimum of its
+    probabilities, the bits of numpy's reductions over the classes (``probs.T.sum(0)``
+    from +0.0 in class order, NaN-propagating ``min``)."""
     probs = np.asarray(probs).astype(np.float32, copy=False)
     N, n = probs.shape
     cls = np.zeros(N, dtype=np.int32)
     E = np.zeros(N, dtype=np.float32)
+    p_sum, p_min = sums if sums is not None else (np.empty(N, np.float32),
+                                                  np.empty(N, np.float32))
     if n == 1 or N == 0:                                 # no second class: p2 = 0, E = 0
+        if n == 1:
+            np.add(np.float32(0.0), probs[:, 0], out=p_sum)
+            p_min[:] = probs[:, 0]
         V = np.float32(1.0) - probs[:, 0] if n == 1 else np.zeros(N, dtype=np.float32)
         return cls, E, V + np.float32(0.0), V
     D = np.empty(N, dtype=np.float32)
@@ -179,7 +188,7 @@ def dispersion(probs: np.ndarray) -> tuple[np.ndarray, ...]:
                 src, col0 = tbuf[:m * n].reshape(n, m), 0
                 _k.transpose_block(probs, b0, src)
             lo, bad = _k.dispersion_block(src, col0, m, b0, clamp, _TINY, _LOG_TINY, scale,
-                                          cls, E, D, V)
+                                          cls, E, D, V, p_sum, p_min)
             smallest, nan = min(smallest, lo), nan or bad
         return smallest, nan
 
@@ -275,8 +284,8 @@ def _empty_result(n, names_arg, proj, N, point_class, E, D, V) -> SegmentResult:
 
 
 def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=None,
-                     min_points: int = 10, class_names: Sequence[str] | None = None
-                     ) -> SegmentResult:
+                     min_points: int = 10, class_names: Sequence[str] | None = None,
+                     point_dispersion: tuple | None = None) -> SegmentResult:
     """Segments, metrics and point maps of one cloud (see the module doc).
 
     ``xyz`` (N, 3); ``probs`` (N, n) softmax probabilities in [0, 1], float32, read in
@@ -284,7 +293,9 @@ def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=Non
     classes contiguous (row-major, or a view into a message's records), never copied in
     float64 (quantized inputs are the caller's to scale); ``ring`` (N,) optional rows
     (ring 0 = top beam); ``intensity`` (N,) optional; ``min_points``: smallest SP of a
-    kept segment; ``class_names`` only name the N_c / P_c metrics.
+    kept segment; ``class_names`` only name the N_c / P_c metrics; ``point_dispersion``:
+    :func:`dispersion` of these ``probs`` when the caller has it (the node's decode takes
+    it with its probability checks, in one pass over the probabilities).
     """
     xyz = np.asarray(xyz)
     if xyz.size == 0:
@@ -306,7 +317,11 @@ def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=Non
     proj = project(xyz, cfg, ring)
     probs = probs.astype(np.float32, copy=False)
     probs = _readable(probs)
-    point_class, E, D, V = dispersion(probs)
+    if point_dispersion is None:
+        point_dispersion = dispersion(probs)
+    elif any(len(a) != N for a in point_dispersion):
+        raise ValueError(f"point_dispersion must hold 4 arrays of {N} values")
+    point_class, E, D, V = point_dispersion
     R, C = cfg.shape
     idx = _i32(proj.index).reshape(-1)
     mask = idx >= 0

@@ -429,17 +429,19 @@ def test_point_segments_match_numpy(seed):
 
 
 @pytest.mark.parametrize("n", [1, 2, 20])
-def test_point_sums_are_numpys_reductions(n):
+def test_dispersion_sums_are_numpys_reductions(n):
     rng = np.random.default_rng(n)
     p = awkward_probs(rng, 3000, n)
     p[:10] = -0.0                                      # numpy sums from +0.0
     rec = np.zeros((3000, n + 3), np.float32)          # a view with strided rows
     rec[:, 2:2 + n] = p
-    view = rec[:, 2:2 + n]
-    total, smallest = np.empty(3000, np.float32), np.empty(3000, np.float32)
-    mk.point_sums(view, total, smallest)
     pcm = np.ascontiguousarray(p.T)
-    with np.errstate(all="ignore"):
-        assert total.tobytes() == np.add.reduce(pcm, axis=0).tobytes()
-        assert smallest.tobytes() == np.minimum.reduce(pcm, axis=0).tobytes()
-    mk.point_sums(view[:0], total[:0], smallest[:0])
+    for probs in (rec[:, 2:2 + n], pcm.T, p):
+        total, smallest = np.empty(3000, np.float32), np.empty(3000, np.float32)
+        got = dispersion(probs, sums=(total, smallest))
+        with np.errstate(all="ignore"):
+            assert total.tobytes() == np.add.reduce(pcm, axis=0).tobytes()
+            assert smallest.tobytes() == np.minimum.reduce(pcm, axis=0).tobytes()
+        for g, w in zip(got, dispersion(p)):
+            assert g.tobytes() == w.tobytes()
+    dispersion(p[:0], sums=(total[:0], smallest[:0]))
