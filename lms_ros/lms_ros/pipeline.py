@@ -376,7 +376,8 @@ class LmsInput:
                                       # padding (part of n_invalid_points)
     ring_field: str | None = None     # the ring field found in the cloud
     dispersion: tuple | None = field(repr=False, default=None)  # (argmax, E, D, V) of
-                                      # probs when decode took them (segment_metrics)
+                                      # probs when decode took them (segment_metrics);
+                                      # whoever changes probs afterwards sets it None
     cloud: np.ndarray | None = field(repr=False, default=None)   # input/points as decoded
                                       # (structured, (N,) or (H, W))
 
