@@ -807,7 +807,6 @@ def test_float32_probability_fields_in_a_run_are_read_in_place(frames):
 
     f = frames[0]
     p = noisy_probs(f, 6)
-    N = len(p)
     p[:20, 0], p[20:40, 1], p[40:60, 2] = np.nan, np.inf, -0.0
     p[60:80] *= np.float32(1.5)                                  # to renormalize
     msg = cloud(f.xyz, p, intensity=f.intensity)                 # no ring: aligned run

@@ -312,12 +312,13 @@ def _place(x, y, z, ring, el, edges, lut, lut_scale, az, R, C, scale, offset,
 
     Rows from ``ring`` if it has one entry per point, else from the elevations ``el``
     (radians from :func:`_elevations`, recomputed with ``math.asin`` within
-    ``_EDGE_MARGIN`` degrees of an edge; to degrees as ``np.degrees`` does) binned by ``edges`` (the row edges, then
-    -inf) with the table ``lut`` / ``lut_scale`` of :func:`_row_lookup`. ``az`` is
-    ``atan2(y, x) * scale + offset`` from :func:`_column_coordinates` (its floor is the
-    column; recomputed with ``math.atan2`` within ``_EDGE_MARGIN`` of an edge, so that
-    every column is libm's). Points are visited in index order and a pixel changes hands
-    only to a strictly nearer point, so a tie keeps the lowest index.
+    ``_EDGE_MARGIN`` degrees of an edge; to degrees as ``np.degrees`` does) binned by
+    ``edges`` (the row edges, then -inf) with the table ``lut`` / ``lut_scale`` of
+    :func:`_row_lookup`. ``az`` is ``atan2(y, x) * scale + offset`` from
+    :func:`_column_coordinates` (its floor is the column; recomputed with ``math.atan2``
+    within ``_EDGE_MARGIN`` of an edge, so that every column is libm's). Points are
+    visited in index order and a pixel changes hands only to a strictly nearer point, so
+    a tie keeps the lowest index.
     """
     for p in range(index.size):
         index[p] = -1
