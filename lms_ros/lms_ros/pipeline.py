@@ -14,9 +14,9 @@ Input layouts (:func:`decode`)
   ``reference_perception.messages.probability_field``); or two clouds, the points and
   the probabilities, with equal point counts (point i of one is point i of the other).
   A probability field is float32 / float64 (taken as is) or uint8 (quantized:
-  value / 255); fields of one cloud may mix both. Float32 fields one after the other in
-  the point record (the usual layout) are read in the message itself, never copied. x, y, z are float32 / float64 metres
-  (integer coordinates, in practice mm or cm, are refused). Anything else (missing
+  value / 255); fields of one cloud may mix both. Float32 fields one after the other
+  in the point record (the usual layout) are read in the message, not copied. x, y, z
+  are float32 / float64 metres (integer coordinates, in practice mm or cm, are refused). Anything else (missing
   field, count != 1, other dtype, unequal counts) raises :class:`CloudFormatError`
   naming the problem.
 Probability checks (per point, vectorized)
