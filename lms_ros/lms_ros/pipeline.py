@@ -16,9 +16,9 @@ Input layouts (:func:`decode`)
   A probability field is float32 / float64 (taken as is) or uint8 (quantized:
   value / 255); fields of one cloud may mix both. Float32 fields one after the other
   in the point record (the usual layout) are read in the message, not copied. x, y, z
-  are float32 / float64 metres (integer coordinates, in practice mm or cm, are refused). Anything else (missing
-  field, count != 1, other dtype, unequal counts) raises :class:`CloudFormatError`
-  naming the problem.
+  are float32 / float64 metres (integer coordinates, in practice mm or cm, are
+  refused). Anything else (missing field, count != 1, other dtype, unequal counts)
+  raises :class:`CloudFormatError` naming the problem.
 Probability checks (per point, vectorized)
   A point whose probabilities hold a non-finite or negative value, or sum to 0, has
   unusable probabilities: it is treated like a point with non-finite coordinates (no
