@@ -98,6 +98,6 @@ def log_f32(x):
     den = _fma(_fma(_fma(_fma(_fma(_Q5, m, _Q4), m, _Q3), m, _Q2), m, _Q1), m, _Q0)
     r = _fma(e, _LN2, num / den)
     r = _NAN if x != x else r
-    r = _float(np.int32(_NEG_NAN_BITS)) if negative else r   # -NaN (-(NaN) keeps the sign)
+    r = _float(_NEG_NAN_BITS) if negative else r   # -NaN (-(NaN) keeps the sign)
     r = -_INF if x == zero else r
     return _INF if x == _INF else r

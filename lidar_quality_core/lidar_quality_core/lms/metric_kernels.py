@@ -54,17 +54,16 @@ def transpose_block(probs, b0, out):
             out[c, j] = row[c]
 
 
-@njit(types.Tuple((_F32, _BOOL))(_in(_F32, 2), _I64, _I64, _I64, _BOOL, _F32, _F32,
+@njit(types.Tuple((_F32, _BOOL))(_in(_F32, 2), _I64, _I64, _I64, _BOOL, _F32,
                                   _F32, _out(_I32), _out(_F32), _out(_F32), _out(_F32),
                                   _out(_F32), _out(_F32)),
       cache=True, nogil=True, error_model="numpy")
-def dispersion_block(pcm, col0, m, b0, clamp, tiny, log_tiny, scale, cls, E, D, V, total,
-                     smallest):
+def dispersion_block(pcm, col0, m, b0, clamp, tiny, scale, cls, E, D, V, total, smallest):
     """Points ``b0 .. b0 + m - 1`` from their class-major probabilities
     ``pcm[:, col0:col0 + m]`` (n > 1 classes): writes ``cls`` (argmax),
     ``E`` = ``scale * sum_c p_c log p_c`` (summed in class order, ``log`` =
     :func:`~lidar_quality_core.float32_log.log_f32`, numpy's bits; with ``clamp``, a
-    probability below ``tiny`` has the log ``log_tiny``), ``V = 1 - p1``
+    probability below ``tiny`` has the log of ``tiny``), ``V = 1 - p1``
     and ``D = V + p2``; a point with a NaN probability gets class 0 and a NaN ``p1``, as
     numpy's max and argmax-by-equality did; ``total`` and ``smallest``, each point's sum
     (in class order from +0.0) and minimum (NaN-propagating) of its probabilities: the
@@ -77,6 +76,7 @@ def dispersion_block(pcm, col0, m, b0, clamp, tiny, log_tiny, scale, cls, E, D, 
     arrays: every loop is sequential and branch-free (vectorized); the top two's branches
     would mispredict on every other probability."""
     n = pcm.shape[0]
+    log_tiny = log_f32(tiny)
     e = np.zeros(m, np.float32)
     tot = np.zeros(m, np.float32)
     p1 = np.full(m, -np.inf, np.float32)

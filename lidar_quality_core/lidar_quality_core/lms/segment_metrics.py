@@ -105,7 +105,6 @@ _BLOCK = 16384
 _DISPERSION_BLOCK = 1 << 17
 # 0 log 0 = 0: the entropy reads max(p, tiny) when some probability is not positive
 _TINY = np.float32(1e-37)
-_LOG_TINY = np.log(np.full(1, _TINY))[0]         # numpy's log (float32_log.log_f32's bits)
 
 
 def n_metrics(n_classes: int) -> int:
@@ -187,8 +186,8 @@ def dispersion(probs: np.ndarray, sums: tuple[np.ndarray, np.ndarray] | None = N
             else:   # class rows of the block, in cache
                 src, col0 = tbuf[:m * n].reshape(n, m), 0
                 _k.transpose_block(probs, b0, src)
-            lo, bad = _k.dispersion_block(src, col0, m, b0, clamp, _TINY, _LOG_TINY, scale,
-                                          cls, E, D, V, p_sum, p_min)
+            lo, bad = _k.dispersion_block(src, col0, m, b0, clamp, _TINY, scale, cls, E, D, V,
+                                          p_sum, p_min)
             smallest, nan = min(smallest, lo), nan or bad
         return smallest, nan
 
