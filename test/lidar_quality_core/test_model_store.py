@@ -26,6 +26,10 @@ from lidar_quality_core.model_store import (
     save_model,
     sha256_file,
 )
+# imported before any test forbids unpickling: numba reads its compiled kernel's cache
+# index with pickle at import (its own file, not a model), and a test run alone or first
+# would otherwise import it inside the check
+from lidar_quality_core import tree_ensemble  # noqa: F401
 
 FEATURES = ["n_points", "range_m", "score", "height_m"]
 
@@ -537,9 +541,10 @@ def test_shipped_model_with_a_manifest_naming_other_features_is_refused(path, tm
         load_model(dst, expected_features=names)
 
 
-def test_shipped_lms_model_for_another_class_count_is_refused(no_unpickle):
+def test_shipped_lms_model_for_another_class_count_is_refused(request):
     from lms_ros.pipeline import LmsSettings, default_model_paths
 
+    request.getfixturevalue("no_unpickle")  # after the import: numba's caches use pickle
     settings = LmsSettings()
     fewer = LmsSettings(class_names=settings.class_names[:-1]).metric_names()
     for path in default_model_paths():
