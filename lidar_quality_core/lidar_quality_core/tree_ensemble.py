@@ -43,32 +43,48 @@ _LINKS = {"binary:logistic": "logistic", "reg:logistic": "logistic",
           "reg:squarederror": "identity"}
 
 
+@njit(inline="always")
+def _step(X, r, i, ft, th, nr):
+    # v >= th: right; NaN compares false: right only if not default_left
+    v = X[r, ft[i]]
+    return 2 * i + 1 + np.int64(v >= th[i]) + np.int64(v != v) * nr[i]
+
+
 @njit("void(float32[:, ::1], int32[:, ::1], float32[:, ::1], int8[:, ::1], float32[:, ::1], "
       "int64, float32, float32[::1])", cache=True, nogil=True)
 def _margins(X, feature, threshold, nan_right, leaf, depth, base, out):
-    # tree by tree over blocks of rows: each level's steps for the rows of a block are
-    # independent, so the CPU overlaps their loads (one row at a time walks ~2x slower)
+    # four rows at a time, each tree walked for the four together: their walks are
+    # independent chains of loads the CPU overlaps, kept in registers (a block of rows
+    # walked level by level through an index array was 1.2x slower, one row at a time
+    # 2x); each row still sums its leaves in tree order
     n, n_trees = X.shape[0], feature.shape[0]
     inner = (1 << depth) - 1
-    block = 64
-    idx = np.empty(block, np.int64)
-    for r0 in range(0, n, block):
-        m = min(n - r0, block)
-        for r in range(m):
-            out[r0 + r] = base
+    r = 0
+    while r + 4 <= n:
+        a0 = a1 = a2 = a3 = base
         for t in range(n_trees):
             ft, th, nr = feature[t], threshold[t], nan_right[t]
-            for r in range(m):
-                idx[r] = 0
+            i0 = i1 = i2 = i3 = 0
             for _ in range(depth):
-                for r in range(m):
-                    i = idx[r]
-                    v = X[r0 + r, ft[i]]
-                    # v >= th: right; NaN compares false: right only if not default_left
-                    idx[r] = 2 * i + 1 + np.int64(v >= th[i]) + np.int64(v != v) * nr[i]
+                i0 = _step(X, r, i0, ft, th, nr)
+                i1 = _step(X, r + 1, i1, ft, th, nr)
+                i2 = _step(X, r + 2, i2, ft, th, nr)
+                i3 = _step(X, r + 3, i3, ft, th, nr)
             lt = leaf[t]
-            for r in range(m):
-                out[r0 + r] += lt[idx[r] - inner]
+            a0 += lt[i0 - inner]
+            a1 += lt[i1 - inner]
+            a2 += lt[i2 - inner]
+            a3 += lt[i3 - inner]
+        out[r], out[r + 1], out[r + 2], out[r + 3] = a0, a1, a2, a3
+        r += 4
+    for r in range(r, n):
+        a = base
+        for t in range(n_trees):
+            i = 0
+            for _ in range(depth):
+                i = _step(X, r, i, feature[t], threshold[t], nan_right[t])
+            a += leaf[t, i - inner]
+        out[r] = a
 
 
 @dataclass(frozen=True)

@@ -115,6 +115,38 @@ def test_empty_and_single_rows():
         te.predict(np.zeros((3, 5)))
 
 
+def _walk_row_by_row(te, X):
+    """The packed trees walked one row and one tree at a time, summed in float32 in tree
+    order: what the compiled walk must return bit for bit, however it groups rows."""
+    X = np.asarray(X, np.float32)
+    inner = (1 << te.depth) - 1
+    out = np.empty(len(X), np.float32)
+    for r, row in enumerate(X):
+        acc = np.float32(te.base_margin)
+        for t in range(te.feature.shape[0]):
+            i = 0
+            for _ in range(te.depth):
+                v = row[te.feature[t, i]]
+                i = 2 * i + 1 + (1 if v >= te.threshold[t, i] else 0) + (
+                    int(te.nan_right[t, i]) if np.isnan(v) else 0)
+            acc = np.float32(acc + te.leaf[t, i - inner])
+        out[r] = acc
+    return out
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 7, 8, 9, 13])
+def test_rows_grouped_or_not_give_the_same_bits(n):
+    # the walk takes rows four at a time and the rest one by one: every remainder
+    rng = np.random.default_rng(20 + n)
+    booster, X = _train(rng, "binary:logistic", 4, missing_frac=0.3, rounds=25)
+    te, _ = pack(booster)
+    R = _rows(np.random.default_rng(n), n, X.shape[1], 0.3)
+    got, ref = te.margin(R), _walk_row_by_row(te, R)
+    assert got.view(np.int32).tolist() == ref.view(np.int32).tolist()
+    # a row's margin does not depend on its neighbours
+    assert te.margin(R[::-1]).view(np.int32).tolist() == got[::-1].view(np.int32).tolist()
+
+
 @pytest.mark.parametrize("case", ["multiclass", "poisson", "early_stopping", "categorical",
                                   "too_deep", "missing_zero", "gblinear"])
 def test_what_is_left_to_xgboost_is_said(case):
