@@ -29,7 +29,7 @@ from lidar_quality_core.model_store import (
 # imported before any test forbids unpickling: numba reads its compiled kernel's cache
 # index with pickle at import (its own file, not a model), and a test run alone or first
 # would otherwise import it inside the check
-from lidar_quality_core import tree_ensemble  # noqa: F401
+from lidar_quality_core import tree_ensemble  # noqa: F401 - imported for its import-time cache read
 
 FEATURES = ["n_points", "range_m", "score", "height_m"]
 
