@@ -26,10 +26,6 @@ from lidar_quality_core.model_store import (
     save_model,
     sha256_file,
 )
-# imported before any test forbids unpickling: numba reads its compiled kernel's cache
-# index with pickle at import (its own file, not a model), and a test run alone or first
-# would otherwise import it inside the check
-from lidar_quality_core import tree_ensemble  # noqa: F401 - imported for its import-time cache read
 
 FEATURES = ["n_points", "range_m", "score", "height_m"]
 
@@ -47,6 +43,10 @@ def data():
 @pytest.fixture
 def no_unpickle(monkeypatch):
     """Make every unpickling entry point fail loudly."""
+    # load_model's compiled tree walk, imported first: numba reads the kernel's cache index
+    # with pickle at import (its own file, not a model)
+    import lidar_quality_core.tree_ensemble  # noqa: F401 - imported for its cache read
+
     def boom(*a, **k):
         raise AssertionError("unpickling attempted")
 
@@ -155,7 +155,7 @@ def test_explicit_model_id(tmp_path, data):
 
 @pytest.mark.parametrize("ext,fmt", [("json", "xgboost-json"), ("ubj", "xgboost-ubj")])
 @pytest.mark.parametrize("task", ["classification", "regression"])
-def test_xgboost_native_roundtrip_without_pickle(tmp_path, data, monkeypatch, ext, fmt, task):
+def test_xgboost_native_roundtrip_without_pickle(tmp_path, data, request, ext, fmt, task):
     X, y_cls, y_reg, X_test = data
     if task == "classification":
         model = xgb.XGBClassifier(n_estimators=15, max_depth=3).fit(X, y_cls)
@@ -169,12 +169,7 @@ def test_xgboost_native_roundtrip_without_pickle(tmp_path, data, monkeypatch, ex
     assert m["xgboost"]["objective"] == ("binary:logistic" if task == "classification"
                                          else "reg:squarederror")
 
-    def boom(*a, **k):
-        raise AssertionError("unpickling attempted")
-
-    for mod, name in [(joblib, "load"), (joblib.numpy_pickle, "load"),
-                      (pickle, "load"), (pickle, "loads")]:
-        monkeypatch.setattr(mod, name, boom)
+    request.getfixturevalue("no_unpickle")
     lm = load_model(path, expected_features=FEATURES, expected_task=task)
     np.testing.assert_allclose(lm.predict(X_test), expected, rtol=0, atol=1e-6)
     assert lm.predict(X_test).shape == (30,)
