@@ -8,10 +8,10 @@ import threading
 from pathlib import Path
 
 import rclpy
-from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
-                             SingleThreadedExecutor)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.signals import SignalHandlerOptions
 
+from .executors import SubmitOnceExecutor
 from .threads import keep_freed_memory, name_os_thread
 
 
@@ -41,7 +41,7 @@ class _Stoppable:
             pass
 
 
-class _DrainingExecutor(_Stoppable, MultiThreadedExecutor):
+class _DrainingExecutor(_Stoppable, SubmitOnceExecutor):
     pass
 
 

@@ -22,11 +22,11 @@ from typing import Any
 
 import rclpy
 from rclpy.context import Context
-from rclpy.executors import (ExternalShutdownException, MultiThreadedExecutor,
-                             SingleThreadedExecutor)
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.parameter import Parameter
 
 from .domain import DomainLease
+from .executors import SubmitOnceExecutor
 from .qos import SENSOR_QOS, output_qos
 
 
@@ -66,7 +66,7 @@ class RosHarness:
         # num_threads=1: a SingleThreadedExecutor, far cheaper per callback (load tests,
         # the demo's recorder); 2 lets an in-process node under test wait in a callback.
         self.executor = (SingleThreadedExecutor(context=self.context) if num_threads <= 1 else
-                         MultiThreadedExecutor(num_threads=num_threads, context=self.context))
+                         SubmitOnceExecutor(num_threads=num_threads, context=self.context))
         self.node = rclpy.create_node(f"lq_test_harness_{os.getpid()}", context=self.context)
         self.executor.add_node(self.node)
         self._nodes = [self.node]
