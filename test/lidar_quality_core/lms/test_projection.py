@@ -1,3 +1,5 @@
+import math
+
 import numpy as np
 import pytest
 
@@ -203,9 +205,18 @@ def test_integer_values_keep_their_dtype_unless_the_fill_needs_more():
     assert f.dtype.kind == "f" and f[0] == 5 and np.isnan(f[1])
 
 
+_libm_asin = np.frompyfunc(math.asin, 1, 1)
+_libm_atan2 = np.frompyfunc(math.atan2, 2, 1)
+
+
 def numpy_project(xyz, cfg, ring=None):
     """Plain numpy reference of :func:`project` (its implementation before the compiled
-    kernels): (row, col, pixel, range, valid, out_of_fov, index)."""
+    kernels): (row, col, pixel, range, valid, out_of_fov, index).
+
+    Elevations and azimuths with libm's asin and atan2 point by point: :func:`project` is
+    libm's on every machine, numpy's float64 ``arcsin`` / ``arctan2`` only on one without
+    AVX-512 (with it numpy runs its own SIMD loops, a last bit away from libm for about 8 %
+    of inputs: measured on a 2-vCPU Intel Xeon, 2026-12-05)."""
     xyz = np.asarray(xyz).reshape(-1, 3)
     n = len(xyz)
     R, C = cfg.rows, cfg.cols
@@ -220,12 +231,13 @@ def numpy_project(xyz, cfg, ring=None):
         row[ok] = ring[ok]
     else:
         with np.errstate(invalid="ignore", divide="ignore"):
-            el = np.degrees(np.arcsin(np.clip(z / np.where(rng > 0, rng, 1.0), -1.0, 1.0)))
+            el = np.degrees(_libm_asin(np.clip(z / np.where(rng > 0, rng, 1.0), -1.0, 1.0))
+                            .astype(np.float64))
         r_idx = np.searchsorted(-cfg.row_edges_deg, -el[finite], side="right") - 1
         r_idx[(r_idx < 0) | (r_idx >= R)] = -1
         row[finite] = r_idx
     valid = row >= 0
-    u = np.arctan2(y, x) * (-0.5 * C / np.pi) + 0.5 * C
+    u = _libm_atan2(y, x).astype(np.float64) * (-0.5 * C / np.pi) + 0.5 * C
     col = np.full(n, -1, dtype=np.int32)
     col[valid] = np.floor(u[valid]).astype(np.int32) % np.int32(C)
     pixel = np.where(valid, row.astype(np.int64) * C + col, -1)
