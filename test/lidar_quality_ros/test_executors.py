@@ -48,9 +48,13 @@ def test_a_suspended_task_is_resumed(ros):
     col = ros.collector(String, "wake")
     assert ros.wait_for_match(pub)
     deadline = time.monotonic() + 5.0
-    while not all(t.executing() or ros.executor._started.get(t) for t in tasks):
-        assert time.monotonic() < deadline, "the tasks never started"
+    # each task ran up to its await and is suspended (started, not executing, not done):
+    # setting the futures earlier would let a first run finish without a resubmission
+    started = ros.executor._started
+    while not all(t in started and started[t].is_set() and not t.executing() for t in tasks):
+        assert time.monotonic() < deadline, "the tasks never ran up to their await"
         time.sleep(0.01)
+    assert not any(t.done() for t in tasks)
     for w, f in futures.items():
         f.set_result(w)
     pub.publish(String(data="wake up"))  # the futures have no executor: wake it ourselves
