@@ -35,7 +35,10 @@ __all__ = [
     "xyz_intensity_view",
     "padding_counts",
     "finite_mask",
+    "xyz_columns",
     "PackedCloud",
+    "cloud_layout",
+    "new_cloud_data",
     "pack_cloud",
     "create_cloud",
     "create_xyz_cloud",
@@ -385,6 +388,42 @@ def _padding(xyz, intensity, out):
 _NO_POINTS = np.empty((0, 3), np.float32)
 
 
+_UNALIGNED_F32 = array_in(types.float32, 1, "A", aligned=False)
+
+
+@njit(types.int64(_UNALIGNED_F32, _UNALIGNED_F32, _UNALIGNED_F32, array_out(types.float32, 2),
+                  array_out(types.boolean)), cache=True, nogil=True)
+def _xyz_columns(x, y, z, out, valid):
+    # one pass over the records: out[k] = coordinate k, valid = finite and not padding;
+    # returns the padding count
+    n_padding = 0
+    for i in range(x.shape[0]):
+        a, b, c = x[i], y[i], z[i]
+        out[0, i] = a
+        out[1, i] = b
+        out[2, i] = c
+        pad = (a == 0) & (b == 0) & (c == 0)
+        valid[i] = np.isfinite(a) & np.isfinite(b) & np.isfinite(c) & ~pad
+        n_padding += pad
+    return n_padding
+
+
+def xyz_columns(arr: np.ndarray) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """``(xyz, valid, n_padding)`` of a decoded cloud (structured, any shape) whose x, y,
+    z are float32 fields: ``xyz`` (N, 3) float32, the transposed view of a (3, N) copy;
+    ``valid`` as :func:`valid_points`; ``n_padding`` the (0, 0, 0) points. One compiled
+    pass over the records (a gather, a finite check and a padding check as numpy passes
+    took 0.8 ms at 120k points). None for other coordinate types (the caller gathers)."""
+    flat = arr.reshape(-1)
+    f32 = np.dtype(np.float32)
+    if any(flat.dtype.fields[nm][0] != f32 for nm in "xyz"):
+        return None
+    out = np.empty((3, flat.size), np.float32)
+    valid = np.empty(flat.size, bool)
+    n_padding = int(_xyz_columns(flat["x"], flat["y"], flat["z"], out, valid))
+    return out.T, valid, n_padding
+
+
 def padding_counts(xyz: np.ndarray, intensity: np.ndarray) -> tuple[int, int]:
     """What :func:`blank_padding` counts, without writing: ``(exact (0, 0, 0) padding
     points, other points with finite coordinates and intensity)`` of (N, 3) float32
@@ -539,29 +578,43 @@ class PackedCloud(NamedTuple):
     data: array.array
 
 
-def pack_cloud(fields) -> PackedCloud:
-    """Pack a structured array or a dict of columns into PointCloud2 layout (see
-    :func:`create_cloud`); used directly by writers of other message libraries (rosbags)."""
-    cols, (height, width) = _columns_of(fields)
-    orders = {_is_big(base) for _, _, base, _ in cols} - {None}
-    big = orders.pop() if len(orders) == 1 else _NATIVE_BIG
+def cloud_layout(spec, big: bool = _NATIVE_BIG) -> tuple[np.dtype, list]:
+    """``(record dtype, fields)`` of a PointCloud2 whose fields ``spec`` (name, dtype,
+    count) are packed in order without padding, big-endian if ``big``; ``fields`` as
+    :class:`PackedCloud`'s (name, offset, datatype, count). The record dtype's itemsize is
+    the point step."""
     order = ">" if big else "<"
     names, formats, offsets, pfields = [], [], [], []
     offset = 0
-    for name, _, base, count in cols:
-        code = pointfield_datatype(base)
+    for name, base, count in spec:
+        code = pointfield_datatype(np.dtype(base))
         wire = DATATYPE_TO_DTYPE[code].newbyteorder(order)
         names.append(name)
         formats.append(wire if count == 1 else np.dtype((wire, (count,))))
         offsets.append(offset)
         pfields.append((name, offset, code, count))
         offset += wire.itemsize * count
-    point_step = offset
+    return np.dtype({"names": names, "formats": formats, "offsets": offsets,
+                     "itemsize": offset}), pfields
+
+
+def new_cloud_data(nbytes: int) -> array.array:
+    """A zeroed ``array.array('B')`` of ``nbytes``: a PointCloud2's data to fill in place
+    (through a numpy view released before :func:`set_cloud_data`)."""
+    return _alloc_bytes(nbytes)
+
+
+def pack_cloud(fields) -> PackedCloud:
+    """Pack a structured array or a dict of columns into PointCloud2 layout (see
+    :func:`create_cloud`); used directly by writers of other message libraries (rosbags)."""
+    cols, (height, width) = _columns_of(fields)
+    orders = {_is_big(base) for _, _, base, _ in cols} - {None}
+    big = orders.pop() if len(orders) == 1 else _NATIVE_BIG
+    dtype, pfields = cloud_layout([(name, base, count) for name, _, base, count in cols], big)
+    point_step = dtype.itemsize
     n = height * width
     if n and not point_step:
         raise CloudFormatError(f"cannot build a cloud of {n} points without fields")
-    dtype = np.dtype({"names": names, "formats": formats, "offsets": offsets,
-                      "itemsize": point_step})
 
     src = fields if isinstance(fields, np.ndarray) else None
     if src is not None and src.dtype == dtype and src.flags.c_contiguous:

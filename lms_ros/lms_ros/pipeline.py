@@ -104,8 +104,10 @@ from lidar_quality_core.parameters import group, param
 from lidar_quality_core.segment_quality_cdr import encode_segment_quality_array
 from lidar_quality_core.pointcloud import (CloudFormatError, PaddingNote, check_xyz_fields,
                                             cloud_to_structured, field_run_view, finite_mask,
-                                            pack_cloud, set_cloud_data, valid_points)
+                                            pack_cloud, set_cloud_data, valid_points,
+                                            xyz_columns)
 from lidar_quality_core.lms import beams, segment_metrics
+from lidar_quality_core.lms.point_results import RESULT_LAYOUT, pack_point_results
 from lidar_quality_core.lms.projection import RangeImageConfig
 from lidar_quality_core.lms.segment_metrics import SegmentResult, compute_segments
 
@@ -128,9 +130,7 @@ INTENSITY_FIELDS = ("intensity", "reflectance", "i")
 
 #: Fields of ``output/points`` in order (name, dtype) (``all_fields``: the input's before
 #: the last four).
-OUTPUT_FIELDS = (("x", np.float32), ("y", np.float32), ("z", np.float32),
-                 ("label", np.uint16), ("segment", np.int32),
-                 ("confidence", np.float32), ("predicted_iou", np.float32))
+OUTPUT_FIELDS = tuple((nm, dt) for nm, dt, _ in RESULT_LAYOUT)
 #: The per-point results among them.
 RESULT_FIELDS = tuple(nm for nm, _ in OUTPUT_FIELDS[3:])
 
@@ -387,18 +387,28 @@ class LmsInput:
 
 
 def _xyz_intensity(arr: np.ndarray):
+    """``(xyz, intensity or None, valid points, padding points)``: ``xyz`` (N, 3) float32,
+    the transposed view of a (3, N) copy (compute_segments and the output read its
+    columns); ``valid`` as ``pointcloud.valid_points``."""
     fields = arr.dtype.fields or {}
     check_xyz_fields(arr.dtype, "input/points")
-    xyz = np.empty((3, arr.size), np.float32)
-    _gather(arr.reshape(-1), "xyz", xyz)
-    xyz = xyz.T     # (N, 3) view; compute_segments and the output read its columns
+    cols = xyz_columns(arr)
+    if cols is not None:
+        xyz, points_ok, n_padding = cols
+    else:   # float64 (or mixed) coordinates
+        xyz = np.empty((3, arr.size), np.float32)
+        _gather(arr.reshape(-1), "xyz", xyz)
+        xyz = xyz.T
+        points_ok = valid_points(xyz)
+        n_padding = int(np.count_nonzero(finite_mask(xyz) & ~points_ok))
     inten_name = next((nm for nm in INTENSITY_FIELDS if nm in fields), None)
     if inten_name is None:
-        return xyz, None
+        return xyz, None, points_ok, n_padding
     if fields[inten_name][0].shape or fields[inten_name][0].kind not in "fiu":
         raise CloudFormatError(f"intensity field {inten_name!r} must be one numeric value "
                                "per point")
-    return xyz, np.asarray(arr[inten_name], dtype=np.float32).reshape(-1)
+    return (xyz, np.asarray(arr[inten_name], dtype=np.float32).reshape(-1), points_ok,
+            n_padding)
 
 
 def _ring(arr: np.ndarray, xyz: np.ndarray, valid: np.ndarray, settings: LmsSettings,
@@ -418,7 +428,9 @@ def _ring(arr: np.ndarray, xyz: np.ndarray, valid: np.ndarray, settings: LmsSett
         what = f"count {dt.shape[0]}" if dt.shape else str(dt.base)
         return None, (f"ring field {name!r} ({what}) is not one integer beam index per "
                       f"point: {fix}"), name
-    raw = np.asarray(arr[name]).reshape(-1)
+    # one pass over the message's records: the checks below read a contiguous copy
+    wide = dt.itemsize > 4 or dt == np.uint32
+    raw = np.asarray(arr[name]).reshape(-1).astype(np.int64 if wide else np.int32)
     by_elevation = settings.rows_by_elevation()
     C = settings.channels
     top, what = (MAX_CHANNELS, "beam indices") if by_elevation else (C, "channels")
@@ -431,7 +443,7 @@ def _ring(arr: np.ndarray, xyz: np.ndarray, valid: np.ndarray, settings: LmsSett
                           f"{int(np.count_nonzero(valid))} outside [0, {what}={top})): "
                           f"{fix}"), name
     if not by_elevation:
-        ring = raw.astype(np.int32)
+        ring = raw.astype(np.int32, copy=False)
         if not settings.ring_zero_top:
             np.subtract(np.int32(C - 1), ring, out=ring)
         return ring, None, name
@@ -519,10 +531,8 @@ def decode(points_msg, settings: LmsSettings, probabilities_msg=None,
     elevations kept across frames (``beam_rows: elevation``; None: this frame's only)."""
     settings = settings.resolved()
     arr = cloud_to_structured(points_msg)
-    xyz, intensity = _xyz_intensity(arr)
+    xyz, intensity, points_ok, n_padding = _xyz_intensity(arr)
     N = len(xyz)
-    points_ok = valid_points(xyz)
-    n_padding = int(np.count_nonzero(finite_mask(xyz) & ~points_ok))
     ring, ring_issue, ring_name = _ring(arr, xyz, points_ok, settings, beam_table)
     if probabilities_msg is None:
         probs, quantized, s, smallest, disp = _probabilities(arr, settings.field_names(),
@@ -868,19 +878,22 @@ class LmsProcessor:
         from sensor_msgs.msg import PointCloud2, PointField
 
         N = len(inp)
-        label = res.point_class.astype(np.uint16)
-        if inp.n_bad_probabilities:
-            label[inp.probs.sum(axis=1) == 0] = NO_LABEL   # decode zeroed exactly those
-        results = {"label": label, "segment": res.point_segment,
-                   "confidence": _per_point(res, conf), "predicted_iou": _per_point(res, iou)}
-        if all_fields:   # (N, count) columns for fields of count > 1
-            flat = inp.cloud.reshape(-1)
-            cols = {nm: flat[nm] for nm in flat.dtype.names if nm not in results}
-        else:
-            cols = {"x": inp.xyz[:, 0], "y": inp.xyz[:, 1], "z": inp.xyz[:, 2]}
-        packed = pack_cloud({**cols, **results})
         h, w = inp.shape if len(inp.shape) == 2 and inp.shape[0] * inp.shape[1] == N \
             else (1, N)
+        label = None
+        if inp.n_bad_probabilities:
+            label = res.point_class.astype(np.uint16)
+            label[inp.probs.sum(axis=1) == 0] = NO_LABEL   # decode zeroed exactly those
+        if all_fields:   # (N, count) columns for fields of count > 1
+            flat = inp.cloud.reshape(-1)
+            results = {"label": res.point_class.astype(np.uint16) if label is None else label,
+                       "segment": res.point_segment, "confidence": _per_point(res, conf),
+                       "predicted_iou": _per_point(res, iou)}
+            cols = {nm: flat[nm] for nm in flat.dtype.names if nm not in results}
+            packed = pack_cloud({**cols, **results})
+        else:   # the records in one pass (point_results)
+            packed = pack_point_results(inp.xyz, res.point_class, res.point_segment, conf, iou,
+                                        label=label, height=h)
         msg = PointCloud2(header=header, height=h, width=w,
                           fields=[PointField(name=nm, offset=o, datatype=d, count=c)
                                   for nm, o, d, c in packed.fields],

@@ -901,3 +901,45 @@ def test_field_run_view():
     v = field_run_view(un, ["a", "b"])                            # after a uint8: unaligned
     assert not v.flags.aligned and np.shares_memory(v, un)
     np.testing.assert_array_equal(v, [[1, 5], [2, 6], [3, 7], [4, 8]])
+
+
+@pytest.mark.parametrize("layout", ["xyz_first", "padded", "organized"])
+def test_xyz_columns_equal_the_numpy_passes(layout):
+    rng = np.random.default_rng(4)
+    n = 3000
+    xyz = rng.normal(0, 30, (n, 3)).astype(np.float32)
+    xyz[::11] = 0.0                                      # padding
+    xyz[5::13, 1] = np.nan
+    xyz[7::17, 2] = np.inf
+    xyz[3] = (-0.0, 0.0, -0.0)                           # padding too, as == 0 says
+    xyz[4] = (0.0, 0.0, 1e-30)                           # not padding
+    cols = {"intensity": rng.random(n).astype(np.float32), "x": xyz[:, 0], "y": xyz[:, 1],
+            "z": xyz[:, 2]} if layout == "padded" else {"x": xyz[:, 0], "y": xyz[:, 1],
+                                                           "z": xyz[:, 2]}
+    arr = cloud_to_structured(create_cloud(None, cols))   # odd offsets when padded
+    if layout == "organized":
+        arr = arr.reshape(30, 100)
+    got, valid, n_padding = pc.xyz_columns(arr)
+    assert got.shape == (n, 3) and got.T.flags.c_contiguous
+    np.testing.assert_array_equal(bits(got), bits(xyz))
+    np.testing.assert_array_equal(valid, pc.valid_points(xyz))
+    assert n_padding == int((finite_mask(xyz) & ~pc.valid_points(xyz)).sum())
+    assert n_padding == int((xyz == 0).all(axis=1).sum()) > 200
+
+
+def test_xyz_columns_leave_other_types_to_the_caller():
+    arr = cloud_to_structured(create_cloud(None, {"x": np.zeros(3), "y": np.zeros(3),
+                                                  "z": np.zeros(3)}))   # float64
+    assert pc.xyz_columns(arr) is None
+
+
+def test_cloud_layout_is_pack_clouds():
+    cols = {"x": np.zeros(4, np.float32), "label": np.zeros(4, np.uint16),
+            "v": np.zeros((4, 3), np.float64)}
+    packed = pc.pack_cloud(cols)
+    dtype, fields = pc.cloud_layout([("x", np.float32, 1), ("label", np.uint16, 1),
+                                     ("v", np.float64, 3)])
+    assert fields == packed.fields and dtype.itemsize == packed.point_step == 4 + 2 + 24
+    big, _ = pc.cloud_layout([("x", np.float32, 1)], big=True)
+    assert big.fields["x"][0] == np.dtype(">f4")
+    assert len(pc.new_cloud_data(10)) == 10 and not any(pc.new_cloud_data(10))
