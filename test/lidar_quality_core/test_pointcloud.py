@@ -740,6 +740,15 @@ def test_real_pcd_clouds(realdata, stem):
         if inten is not None:
             np.testing.assert_array_equal(vi, inten)
             assert pc.padding_counts(view, vi) == pc.blank_padding(xyz.copy(), inten)
+        # lms's read: one pass over the driver's records, the same values and checks
+        cols = pc.xyz_columns(s)
+        if s.dtype.fields["x"][0] == np.float32:
+            got, valid, n_padding = cols
+            np.testing.assert_array_equal(bits(got), bits(xyz))
+            np.testing.assert_array_equal(valid, pc.valid_points(xyz))
+            assert n_padding == int((finite_mask(xyz) & ~pc.valid_points(xyz)).sum())
+        else:
+            assert cols is None
     # Ranges are those of a real scene, not garbage from a wrong offset.
     ok = ref_xyz[finite_ref.reshape(-1)]
     rng = np.linalg.norm(ok, axis=1)
