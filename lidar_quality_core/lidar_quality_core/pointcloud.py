@@ -504,7 +504,9 @@ class PaddingNote:
                 "feature and counted as points.padding in /diagnostics"]
 
 
-def _alloc_bytes(nbytes: int) -> array.array:
+def new_cloud_data(nbytes: int) -> array.array:
+    """A zeroed ``array.array('B')`` of ``nbytes``: a PointCloud2's data to fill in place
+    (through a numpy view released before :func:`set_cloud_data`)."""
     # Repeating a 1-element array is a memset: the cheapest zeroed array.array('B').
     return array.array("B", b"\0") * nbytes
 
@@ -598,12 +600,6 @@ def cloud_layout(spec, big: bool = _NATIVE_BIG) -> tuple[np.dtype, list]:
                      "itemsize": offset}), pfields
 
 
-def new_cloud_data(nbytes: int) -> array.array:
-    """A zeroed ``array.array('B')`` of ``nbytes``: a PointCloud2's data to fill in place
-    (through a numpy view released before :func:`set_cloud_data`)."""
-    return _alloc_bytes(nbytes)
-
-
 def pack_cloud(fields) -> PackedCloud:
     """Pack a structured array or a dict of columns into PointCloud2 layout (see
     :func:`create_cloud`); used directly by writers of other message libraries (rosbags)."""
@@ -621,7 +617,7 @@ def pack_cloud(fields) -> PackedCloud:
         buf = array.array("B")
         buf.frombytes(src.reshape(-1).view(np.uint8))  # the single copy
     else:
-        buf = _alloc_bytes(n * point_step)
+        buf = new_cloud_data(n * point_step)
         if n:
             dst = np.frombuffer(buf, dtype).reshape(src.shape if src is not None else (n,))
             for name, col, _, _ in cols:

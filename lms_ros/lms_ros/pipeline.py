@@ -107,7 +107,8 @@ from lidar_quality_core.pointcloud import (CloudFormatError, PaddingNote, check_
                                             pack_cloud, set_cloud_data, valid_points,
                                             xyz_columns)
 from lidar_quality_core.lms import beams, segment_metrics
-from lidar_quality_core.lms.point_results import RESULT_LAYOUT, pack_point_results
+from lidar_quality_core.lms.point_results import (RESULT_LAYOUT, pack_point_results,
+                                                  segment_table)
 from lidar_quality_core.lms.projection import RangeImageConfig
 from lidar_quality_core.lms.segment_metrics import SegmentResult, compute_segments
 
@@ -682,11 +683,8 @@ def geometry_mismatch(models, settings: LmsSettings) -> str | None:
 def _per_point(res: SegmentResult, per_segment) -> np.ndarray:
     """(N,) float32 value of each point's segment (``per_segment``: n_segments values,
     NaN for excluded segments), NaN for points without one: ``segment_metrics.to_points`` as
-    one gather (segment -1 reads the appended NaN)."""
-    table = np.empty(res.n_segments + 1, np.float32)
-    table[:-1] = per_segment
-    table[-1] = np.nan
-    return table[res.point_segment]
+    one gather (segment -1 reads the table's last row, NaN)."""
+    return segment_table(per_segment)[res.point_segment]
 
 
 @dataclass

@@ -19,7 +19,7 @@ from numba import njit, types
 from lidar_quality_core.kernel_types import array_in as _in
 from lidar_quality_core.pointcloud import PackedCloud, cloud_layout, new_cloud_data
 
-__all__ = ["RESULT_LAYOUT", "pack_point_results"]
+__all__ = ["RESULT_LAYOUT", "pack_point_results", "segment_table"]
 
 #: The records (name, dtype, count), in order.
 RESULT_LAYOUT = (("x", np.float32, 1), ("y", np.float32, 1), ("z", np.float32, 1),
@@ -62,8 +62,9 @@ def _write(x, y, z, point_class, point_segment, label_override, conf, iou,
     return finite
 
 
-def _table(per_segment) -> np.ndarray:
-    """float32 values per segment, then NaN (the row of a point without a segment)."""
+def segment_table(per_segment) -> np.ndarray:
+    """float32 values per segment, then NaN: indexed by a point's segment (-1: none, the
+    last row) it gives the point's value."""
     per_segment = np.asarray(per_segment)
     t = np.empty(len(per_segment) + 1, np.float32)
     t[:-1] = per_segment
@@ -89,7 +90,7 @@ def pack_point_results(xyz, point_class, point_segment, confidence, predicted_io
              else np.ascontiguousarray(label, dtype=np.uint16))
     if not (len(point_class) == len(point_segment) == n and len(label) in (0, n)):
         raise ValueError(f"per-point arrays must have {n} entries")
-    conf, iou = _table(confidence), _table(predicted_iou)
+    conf, iou = segment_table(confidence), segment_table(predicted_iou)
     if len(conf) != len(iou):
         raise ValueError("confidence and predicted_iou must have one value per segment")
     if n and point_segment.max() >= len(conf) - 1:
