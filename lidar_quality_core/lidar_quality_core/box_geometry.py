@@ -100,18 +100,46 @@ class _BoxTable(NamedTuple):
 
 
 def _box_table(b: np.ndarray, margin: float):
-    """(valid mask, _BoxTable) with half sizes grown by ``margin``."""
+    """(valid mask, gridable mask, BEV side, _BoxTable) with half sizes grown by ``margin``;
+    side: twice the larger BEV half extent; gridable: valid, with a finite side and
+    |centre| < 1e15 (``_inside_pairs``)."""
     with np.errstate(over="ignore", invalid="ignore"):
         c, s = np.cos(b[:, 6]), np.sin(b[:, 6])
-        half = b[:, 3:6] / 2.0 + margin
-        valid = (np.isfinite(b).all(axis=1) & (np.min(b[:, 3:6], axis=1) > 0.0)
-                 & (np.min(half, axis=1) >= 0.0) & np.isfinite(half).all(axis=1))
-        ac, as_ = np.abs(c), np.abs(s)
-        ex = ac * half[:, 0] + as_ * half[:, 1]
-        ey = as_ * half[:, 0] + ac * half[:, 1]
-    col = [np.ascontiguousarray(a) for a in (b[:, 0], b[:, 1], b[:, 2], c, s,
-                                              half[:, 0], half[:, 1], half[:, 2], ex, ey)]
-    return valid, _BoxTable(*col)
+    valid, gridable, side, cols = _box_columns(b, c, s, float(margin))
+    return valid, gridable, side, _BoxTable(*cols)
+
+
+@njit("Tuple((boolean[::1], boolean[::1], float64[::1], float64[:, ::1]))(float64[:, ::1], "
+      "float64[::1], float64[::1], float64)", cache=True, nogil=True)
+def _box_columns(b, c, s, margin):
+    # One pass for what took some twenty numpy calls on a few hundred boxes (0.14 ms);
+    # the same IEEE operations, so the same values.
+    n = b.shape[0]
+    valid = np.empty(n, np.bool_)
+    gridable = np.empty(n, np.bool_)
+    side = np.empty(n)
+    cols = np.empty((10, n))
+    for j in range(n):
+        hl = b[j, 3] / 2.0 + margin
+        hw = b[j, 4] / 2.0 + margin
+        hh = b[j, 5] / 2.0 + margin
+        ok = min(b[j, 3], b[j, 4], b[j, 5]) > 0.0 and min(hl, hw, hh) >= 0.0
+        for k in range(7):
+            ok = ok and np.isfinite(b[j, k])
+        ok = ok and np.isfinite(hl) and np.isfinite(hw) and np.isfinite(hh)
+        ac, as_ = abs(c[j]), abs(s[j])
+        ex = ac * hl + as_ * hw
+        ey = as_ * hl + ac * hw
+        valid[j] = ok
+        side[j] = 2.0 * (ex if ex >= ey or np.isnan(ex) else ey)
+        # giant boxes (relative to a typical one) or absurd coordinates go brute force
+        gridable[j] = (ok and np.isfinite(side[j]) and abs(b[j, 0]) < 1e15
+                       and abs(b[j, 1]) < 1e15)
+        cols[0, j], cols[1, j], cols[2, j] = b[j, 0], b[j, 1], b[j, 2]
+        cols[3, j], cols[4, j] = c[j], s[j]
+        cols[5, j], cols[6, j], cols[7, j] = hl, hw, hh
+        cols[8, j], cols[9, j] = ex, ey
+    return valid, gridable, side, cols
 
 
 def _exact(px, py, pz, t: _BoxTable):
@@ -131,24 +159,21 @@ def _exact(px, py, pz, t: _BoxTable):
 
 
 def _inside_pairs(points, boxes, margin=0.0):
-    """Unordered (point_idx, box_idx) int64 arrays of all inside pairs."""
+    """(point_idx, box_idx) int64 arrays of all inside pairs: the grid's pairs point-major,
+    then those of boxes tested brute force, box by box; a box's points are ascending."""
     p = _as_points(points)
     b = as_boxes(boxes)
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64))
     if len(p) == 0 or len(b) == 0 or not np.isfinite(margin):
         return empty
-    valid, tab = _box_table(b, float(margin))
+    valid, gridable, side, tab = _box_table(b, float(margin))
     if not valid.any():
         return empty
-    with np.errstate(over="ignore", invalid="ignore"):
-        side = 2.0 * np.maximum(tab.ex, tab.ey)
-        # Grid only boxes of sane size and position; giant boxes (relative to a typical
-        # one) or absurd coordinates go brute force below, so they cannot blow up the grid.
-        gridable = (valid & np.isfinite(side) & (np.abs(tab.cx) < 1e15)
-                    & (np.abs(tab.cy) < 1e15))
     out_pt, out_bx = [], []
     normal = np.zeros(0, np.int64)
     if gridable.any():
+        # Grid only boxes of sane size and position; giant boxes (relative to a typical
+        # one) or absurd coordinates go brute force below, so they cannot blow up the grid.
         sg = side[gridable]
         cs = _CELL_FACTOR * float(np.partition(sg, len(sg) // 2)[len(sg) // 2])  # ~median
         normal = np.flatnonzero(gridable & (side <= _BIG_BOX_CELLS * cs))
@@ -166,50 +191,22 @@ def _inside_pairs(points, boxes, margin=0.0):
         out_bx.append(np.full(len(out_pt[-1]), j, dtype=np.int64))
     if not out_pt:
         return empty
+    if len(out_pt) == 1:
+        return out_pt[0], out_bx[0]
     return np.concatenate(out_pt), np.concatenate(out_bx)
 
 
 def _grid_pairs(p, tab: _BoxTable, normal, cs, out_pt, out_bx):
     """Inside pairs of the ``normal`` boxes via a coarse BEV grid (appends to the lists)."""
-    t = tab.take(normal)
-    xmin, xmax = float(np.min(t.cx - t.ex)), float(np.max(t.cx + t.ex))
-    ymin, ymax = float(np.min(t.cy - t.ey)), float(np.max(t.cy + t.ey))
-    wx, wy = xmax - xmin, ymax - ymin
-    # Slack covering the rounding of the point -> cell mapping (done in the points' dtype,
-    # possibly float32) and of the exact test, so no inside pair is ever lost.
     ftype = np.float32 if p.dtype == np.float32 else np.float64
-    cs = max(cs, wx / _MAX_CELLS_PER_AXIS, wy / _MAX_CELLS_PER_AXIS,
-             np.sqrt(wx) * np.sqrt(wy) / np.sqrt(_MAX_CELLS),
-             1e-12 * max(abs(xmin), abs(xmax), abs(ymin), abs(ymax)),
-             1e-30 if ftype is np.float32 else 1e-200)  # 1 / cs must not overflow ftype
-    tol = 8.0 * np.finfo(ftype).eps * (max(abs(xmin), abs(xmax)) + max(abs(ymin), abs(ymax))
-                                        + 4.0 * cs) + 1e-300
-    while True:
-        inv = 1.0 / cs
-        # One empty margin cell on each side absorbs clamped far / NaN points.
-        nx = int(np.ceil(wx * inv)) + 3
-        ny = int(np.ceil(wy * inv)) + 3
-        x0, y0 = xmin - cs, ymin - cs
-        ix0 = np.clip(np.floor((t.cx - t.ex - tol - x0) * inv), 0, nx - 1).astype(np.int64)
-        ix1 = np.clip(np.floor((t.cx + t.ex + tol - x0) * inv), 0, nx - 1).astype(np.int64)
-        iy0 = np.clip(np.floor((t.cy - t.ey - tol - y0) * inv), 0, ny - 1).astype(np.int64)
-        iy1 = np.clip(np.floor((t.cy + t.ey + tol - y0) * inv), 0, ny - 1).astype(np.int64)
-        cny = iy1 - iy0 + 1
-        ncell = (ix1 - ix0 + 1) * cny
-        if ncell.sum() <= max(_MAX_CELL_ENTRIES, 16 * len(normal)):
-            break
-        cs *= 2.0  # many mid-size boxes: coarsen until the incidence table is bounded
-
-    # the cells each box's rotated rectangle may touch, grouped by cell (box order kept)
-    cell_start, cell_cnt, cell_box = _cell_table(
-        ix0, ix1, iy0, iy1, x0, y0, cs, tol, t.cx, t.cy, t.c, t.s, t.hl, t.hw,
-        np.ascontiguousarray(normal, dtype=np.int64), nx * ny, ny)
+    x0, y0, inv, nx, ny, cell_start, cell_cnt, cell_box, cell_rows = _cell_table(
+        np.stack(tab), np.ascontiguousarray(normal, dtype=np.int64), float(cs),
+        float(np.finfo(ftype).eps), 1e-30 if ftype is np.float32 else 1e-200)
     if p.dtype != ftype:
         p = p.astype(ftype)
-    # one row of the exact test's terms per box: a candidate reads one cache line, not eight
-    rows = np.column_stack((tab.cx, tab.cy, tab.cz, tab.c, -tab.s, tab.hl, tab.hw, tab.hh))
-    pt, bx = _grid_kernel(p[:, 0], p[:, 1], p[:, 2], ftype(x0), ftype(y0), ftype(inv), nx, ny,
-                          cell_start, cell_cnt, cell_box, rows)
+    pt, bx = _grid_kernel(p[:, 0], p[:, 1], p[:, 2], ftype(x0), ftype(y0), ftype(inv),
+                          ftype(nx - 1), ftype(ny - 1), ny, cell_start, cell_cnt, cell_box,
+                          cell_rows)
     out_pt.append(pt)
     out_bx.append(bx)
 
@@ -232,88 +229,139 @@ def _group(keys, values, n):
     return offsets, out
 
 
-@njit("Tuple((int64[::1], int64[::1], int64[::1]))(int64[::1], int64[::1], int64[::1], "
-      "int64[::1], float64, float64, float64, float64, float64[::1], float64[::1], float64[::1], "
-      "float64[::1], float64[::1], float64[::1], int64[::1], int64, int64)", cache=True, nogil=True)
-def _cell_table(ix0, ix1, iy0, iy1, x0, y0, cs, tol, cx, cy, c, s, hl, hw, normal, ncells, ny):
+@njit("Tuple((float64, float64, float64, int64, int64, int64[::1], int64[::1], int64[::1], "
+      "float64[:, ::1]))(float64[:, ::1], int64[::1], float64, float64, float64)",
+      cache=True, nogil=True)
+def _cell_table(cols, normal, cs, eps, tiny):
+    # The grid over the ``normal`` boxes (rows of ``cols``: _BoxTable's columns) and, per
+    # cell, the boxes whose rotated rectangle may touch it: (x0, y0, 1 / cell size, nx, ny,
+    # start, count, box, row) with the exact test's terms of each (cell, box) incidence in
+    # one row (cx, cy, cz, cos, -sin, half l, w, h): a candidate reads one cache line.
+    # One compiled pass for what were some forty numpy calls on a few hundred boxes.
+    cx, cy, cz, c, s, hl, hw, hh, ex, ey = (cols[0], cols[1], cols[2], cols[3], cols[4],
+                                            cols[5], cols[6], cols[7], cols[8], cols[9])
+    n = len(normal)
+    xmin, xmax, ymin, ymax = np.inf, -np.inf, np.inf, -np.inf
+    for j in normal:
+        xmin = min(xmin, cx[j] - ex[j])
+        xmax = max(xmax, cx[j] + ex[j])
+        ymin = min(ymin, cy[j] - ey[j])
+        ymax = max(ymax, cy[j] + ey[j])
+    wx, wy = xmax - xmin, ymax - ymin
+    ax, ay = max(abs(xmin), abs(xmax)), max(abs(ymin), abs(ymax))
+    # Slack covering the rounding of the point -> cell mapping (done in the points' dtype,
+    # possibly float32, ``eps``) and of the exact test, so no inside pair is ever lost;
+    # ``tiny``: 1 / cs must not overflow that dtype.
+    cs = max(cs, wx / _MAX_CELLS_PER_AXIS, wy / _MAX_CELLS_PER_AXIS,
+             np.sqrt(wx) * np.sqrt(wy) / np.sqrt(_MAX_CELLS), 1e-12 * max(ax, ay), tiny)
+    tol = 8.0 * eps * (ax + ay + 4.0 * cs) + 1e-300
+    ix0 = np.empty(n, np.int64)
+    ix1 = np.empty(n, np.int64)
+    iy0 = np.empty(n, np.int64)
+    iy1 = np.empty(n, np.int64)
+    while True:
+        inv = 1.0 / cs
+        # One empty margin cell on each side absorbs clamped far / NaN points.
+        nx = int(np.ceil(wx * inv)) + 3
+        ny = int(np.ceil(wy * inv)) + 3
+        x0, y0 = xmin - cs, ymin - cs
+        tot = 0
+        for k in range(n):
+            j = normal[k]
+            ix0[k] = int(min(max(np.floor((cx[j] - ex[j] - tol - x0) * inv), 0.0), nx - 1.0))
+            ix1[k] = int(min(max(np.floor((cx[j] + ex[j] + tol - x0) * inv), 0.0), nx - 1.0))
+            iy0[k] = int(min(max(np.floor((cy[j] - ey[j] - tol - y0) * inv), 0.0), ny - 1.0))
+            iy1[k] = int(min(max(np.floor((cy[j] + ey[j] + tol - y0) * inv), 0.0), ny - 1.0))
+            tot += (ix1[k] - ix0[k] + 1) * (iy1[k] - iy0[k] + 1)
+        if tot <= max(_MAX_CELL_ENTRIES, 16 * n):
+            break
+        cs *= 2.0  # many mid-size boxes: coarsen until the incidence table is bounded
+
     # The (box, cell) incidences of each box's axis-aligned rectangle, minus the cells the
     # rotated rectangle misses (separating axes = box axes, with slack), then grouped by
-    # cell in box order: (start, count, box) per cell.
-    n = len(normal)
-    tot = 0
-    for j in range(n):
-        tot += (ix1[j] - ix0[j] + 1) * (iy1[j] - iy0[j] + 1)
+    # cell in box order.
     ent_cell = np.empty(tot, np.int64)
     ent_box = np.empty(tot, np.int64)
     m = 0
-    for j in range(n):
+    for k in range(n):
+        j = normal[k]
         ce, se = c[j], s[j]
         r = 0.5 * cs * (abs(ce) + abs(se)) + 2.0 * tol
-        for gx in range(ix0[j], ix1[j] + 1):
+        for gx in range(ix0[k], ix1[k] + 1):
             ccx = x0 + (gx + 0.5) * cs - cx[j]
-            for gy in range(iy0[j], iy1[j] + 1):
+            for gy in range(iy0[k], iy1[k] + 1):
                 ccy = y0 + (gy + 0.5) * cs - cy[j]
                 if (abs(ce * ccx + se * ccy) <= hl[j] + r
                         and abs(ce * ccy - se * ccx) <= hw[j] + r):
                     ent_cell[m] = gx * ny + gy
-                    ent_box[m] = normal[j]
+                    ent_box[m] = j
                     m += 1
-    offsets, box = _group(ent_cell[:m], ent_box[:m], ncells)
-    return offsets[:-1].copy(), offsets[1:] - offsets[:-1], box
+    offsets, box = _group(ent_cell[:m], ent_box[:m], nx * ny)
+    rows = np.empty((m, 8))
+    for q in range(m):
+        j = box[q]
+        rows[q, 0], rows[q, 1], rows[q, 2], rows[q, 3] = cx[j], cy[j], cz[j], c[j]
+        rows[q, 4], rows[q, 5], rows[q, 6], rows[q, 7] = -s[j], hl[j], hw[j], hh[j]
+    return x0, y0, inv, nx, ny, offsets[:-1].copy(), offsets[1:] - offsets[:-1], box, rows
 
 
 def _kernel_sig(f):
     # the points may be read-only views into a message (lmd_ros: no copy of the cloud)
     pts = array_in(f, 1, "A")
     return types.Tuple((array_out(types.int64), array_out(types.int64)))(
-        pts, pts, pts, f, f, f, types.int64, types.int64, array_out(types.int64),
+        pts, pts, pts, f, f, f, f, f, types.int64, array_out(types.int64),
         array_out(types.int64), array_out(types.int64), array_out(types.float64, 2))
 
 
 @njit([_kernel_sig(types.float32), _kernel_sig(types.float64)], cache=True, nogil=True)
-def _grid_kernel(px, py, pz, x0, y0, inv, nx, ny, cell_start, cell_cnt, cell_box, rows):
-    # Two passes over the points: each point's cell (in the points' dtype, as the grid's
-    # slack assumes) and the number of candidates, then the exact test against the boxes
-    # listed in its cell (``rows``: per box cx, cy, cz, cos, -sin, half l, w, h). Counting
-    # first sizes the outputs exactly: growing them as candidates came (copies, and fresh
-    # pages each frame) cost more than the tests; 2.1 -> 0.9 ms on the bench frame. Pairs
-    # come out point-major. The local coordinates are rounded exactly as in _exact
+def _grid_kernel(px, py, pz, x0, y0, inv, hx, hy, ny, cell_start, cell_cnt, cell_box, rows):
+    # Two passes: each point's cell (in the points' dtype, as the grid's slack assumes;
+    # clamped to the margin cells ``hx``, ``hy`` without a branch, NaN to 0) and the
+    # number of candidates, keeping a list of the points whose cell holds a box (a
+    # fifth of a typical cloud); then the exact test of those against the incidences of
+    # their cell (``rows``). Counting first sizes the outputs exactly: growing them as
+    # candidates came (copies, and fresh pages each frame) cost more than the tests.
+    # Pairs come out point-major. The local coordinates are rounded exactly as in _exact
     # (c dx + s dy, c dy - s dx): a point on a face gets the same verdict on both paths.
     # Each candidate is written and kept only if inside (no branch on the verdict: a third
     # of the candidates are inside, a branch the CPU cannot predict).
     n = px.shape[0]
-    cells = np.empty(n, np.int32)  # < _MAX_CELLS plus margins
+    zero = hx - hx
+    sel = np.empty(n, np.int64)
+    sel_cell = np.empty(n, np.int64)
     total = 0
+    k = 0
     for i in range(n):
         fx = (px[i] - x0) * inv
         fy = (py[i] - y0) * inv
-        # clamp before converting: NaN / inf / huge have no integer (the test rejects them)
-        ix = int(fx) if fx >= 0 and fx < nx - 1 else (nx - 1 if fx >= nx - 1 else 0)
-        iy = int(fy) if fy >= 0 and fy < ny - 1 else (ny - 1 if fy >= ny - 1 else 0)
-        cell = ix * ny + iy
-        cells[i] = cell
-        total += cell_cnt[cell]
+        fx = fx if fx > zero else zero
+        fx = fx if fx < hx else hx
+        fy = fy if fy > zero else zero
+        fy = fy if fy < hy else hy
+        cell = int(fx) * ny + int(fy)
+        m = cell_cnt[cell]
+        sel[k] = i
+        sel_cell[k] = cell
+        total += m
+        k += m > 0
     out_pt = np.empty(total, np.int64)
     out_bx = np.empty(total, np.int64)
-    k = 0
-    for i in range(n):
-        cell = cells[i]
-        m = cell_cnt[cell]
-        if m == 0:
-            continue
+    q0 = 0
+    for j in range(k):
+        i = sel[j]
+        cell = sel_cell[j]
         x, y, z = np.float64(px[i]), np.float64(py[i]), np.float64(pz[i])
         s0 = cell_start[cell]
-        for q in range(s0, s0 + m):
-            b = cell_box[q]
-            r = rows[b]
+        for q in range(s0, s0 + cell_cnt[cell]):
+            r = rows[q]
             dx = x - r[0]
             dy = y - r[1]
             inside = ((abs(dx * r[3] - dy * r[4]) <= r[5]) & (abs(dx * r[4] + dy * r[3]) <= r[6])
                       & (abs(z - r[2]) <= r[7]))
-            out_pt[k] = i
-            out_bx[k] = b
-            k += inside
-    return out_pt[:k], out_bx[:k]
+            out_pt[q0] = i
+            out_bx[q0] = cell_box[q]
+            q0 += inside
+    return out_pt[:q0], out_bx[:q0]
 
 
 def points_in_boxes(points, boxes, margin: float = 0.0):
@@ -347,49 +395,78 @@ class SegmentStats(NamedTuple):
 
 
 def segment_stats(values, offsets, point_index) -> SegmentStats:
-    """Per-box count / min / max / mean / std of per-point ``values`` over a CSR membership."""
+    """Per-box count / min / max / mean / std of per-point ``values`` over a CSR membership
+    (sums in membership order)."""
     offsets = np.asarray(offsets, dtype=np.int64)
-    idx = np.asarray(point_index, dtype=np.int64)[offsets[0]:offsets[-1]]
-    v = np.asarray(values, dtype=np.float64)[idx]
-    offsets = offsets - offsets[0]
+    idx = np.ascontiguousarray(np.asarray(point_index, dtype=np.int64)[offsets[0]:offsets[-1]])
     cnt = np.diff(offsets)
-    n = len(cnt)
-    out = [np.zeros(n) for _ in range(4)]
-    ne = np.flatnonzero(cnt > 0)
-    if len(ne):
-        # reduceat misbehaves on empty segments, so reduce only over non-empty starts:
-        # empty segments in between have zero width and change nothing.
-        starts = offsets[ne]
-        cn = cnt[ne]
-        mean = np.add.reduceat(v, starts) / cn
-        dev = v - np.repeat(mean, cn)
-        out[0][ne] = np.minimum.reduceat(v, starts)
-        out[1][ne] = np.maximum.reduceat(v, starts)
-        out[2][ne] = mean
-        out[3][ne] = np.sqrt(np.add.reduceat(dev * dev, starts) / cn)
-    return SegmentStats(cnt, *out)
+    box = np.repeat(np.arange(len(cnt), dtype=np.int64), cnt)
+    return SegmentStats(*_pair_stats(_stat_values(values), idx, box, len(cnt), False))
 
 
-def _usable_points(points, intensity):
-    """(usable point count, point mask or None when every point is usable): a point is
-    usable when x, y, z and its intensity are finite."""
+def _stat_values(values) -> np.ndarray:
+    v = np.asarray(values).reshape(-1)
+    return v if v.dtype in (np.float32, np.float64) else v.astype(np.float64)
+
+
+def _stats_sig(f):
+    # the values may be a read-only, unaligned view into a message's records
+    return types.Tuple((array_out(types.int64),) + (array_out(types.float64),) * 4)(
+        array_in(f, 1, "A", aligned=False), array_in(types.int64), array_in(types.int64),
+        types.int64, types.boolean)
+
+
+@njit([_stats_sig(types.float32), _stats_sig(types.float64)], cache=True, nogil=True)
+def _pair_stats(values, pt, box, n, finite_only):
+    # Per box over (point, box) pairs in any order: count, min, max, mean and population
+    # std (two passes: the mean, then the squared deviations), each box's sums in the
+    # order its pairs come; a box without values gets zeros. ``finite_only``: pairs whose
+    # value is NaN / inf are left out (else they propagate). The numpy chain it replaces
+    # (a gather, four reduceat, a repeat; 0.4 ms on 500 boxes) summed pairwise: the last
+    # bit of a mean can differ from it.
+    cnt = np.zeros(n, np.int64)
+    lo = np.full(n, np.inf)
+    hi = np.full(n, -np.inf)
+    total = np.zeros(n)
+    vals = np.empty(len(pt))  # contiguous for the second pass
+    for k in range(len(pt)):
+        v = np.float64(values[pt[k]])
+        vals[k] = v
+        if np.isfinite(v) or not finite_only:
+            b = box[k]
+            lo[b] = v if v < lo[b] or np.isnan(v) else lo[b]  # NaN sticks, as in np.minimum
+            hi[b] = v if v > hi[b] or np.isnan(v) else hi[b]
+            total[b] += v
+            cnt[b] += 1
+    mean = np.zeros(n)
+    for b in range(n):
+        if cnt[b]:
+            mean[b] = total[b] / cnt[b]
+        else:
+            lo[b] = hi[b] = 0.0
+    dev = np.zeros(n)
+    for k in range(len(pt)):
+        v = vals[k]
+        if np.isfinite(v) or not finite_only:
+            d = v - mean[box[k]]
+            dev[box[k]] += d * d
+    std = np.zeros(n)
+    for b in range(n):
+        if cnt[b]:
+            std[b] = np.sqrt(dev[b] / cnt[b])
+    return cnt, lo, hi, mean, std
+
+
+def _usable_count(points, intensity) -> int:
+    """The points whose x, y, z and intensity are finite."""
     # Any NaN / inf makes the sum non-finite; an overflowing sum of finite values only
     # sends us to the exact check below.
     if np.isfinite(np.sum(points)) and np.isfinite(np.sum(intensity)):
-        return len(points), None
+        return len(points)
     ok = np.isfinite(intensity)
     for c in range(3):
         ok &= np.isfinite(points[:, c])
-    return int(np.count_nonzero(ok)), ok
-
-
-def _filter_csr(offsets, idx, ok):
-    """Drop the points with ``ok[idx] == False`` from a CSR membership."""
-    keep = ok[idx]
-    seg = np.repeat(np.arange(len(offsets) - 1), np.diff(offsets))
-    new = np.zeros_like(offsets)
-    np.cumsum(np.bincount(seg[keep], minlength=len(offsets) - 1), out=new[1:])
-    return new, idx[keep]
+    return int(np.count_nonzero(ok))
 
 
 def as_cloud(points, intensity) -> tuple[np.ndarray, np.ndarray]:
@@ -415,11 +492,9 @@ def inbox_point_stats(points, intensity, boxes, n_usable: int | None = None
     padding no box contains), not counted again."""
     pts, inten = as_cloud(points, intensity)
     if n_usable is None:
-        n_usable, mask = _usable_points(pts, inten)
-    else:
-        # points without finite coordinates are inside no box: only the intensity filters
-        mask = None if np.isfinite(np.sum(inten)) else np.isfinite(inten)
-    offsets, idx = points_in_boxes(pts, boxes)
-    if mask is not None:
-        offsets, idx = _filter_csr(offsets, idx, mask)
-    return segment_stats(inten, offsets, idx), n_usable
+        n_usable = _usable_count(pts, inten)
+    # Points without finite coordinates are inside no box; of the others, those without a
+    # finite intensity are left out of the statistics (and the count).
+    pt, box = _inside_pairs(pts, boxes)
+    return SegmentStats(*_pair_stats(_stat_values(inten), pt, box, len(as_boxes(boxes)),
+                                     True)), int(n_usable)

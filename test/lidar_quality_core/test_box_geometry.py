@@ -367,6 +367,79 @@ def test_segment_stats_hand_example():
     np.testing.assert_allclose(s.std, [0.5, 0, 3.5])
 
 
+def test_segment_stats_propagates_nan_like_numpy():
+    vals = np.array([1.0, np.nan, 3.0, 4.0, 5.0])
+    s = segment_stats(vals, np.array([0, 3, 5]), np.arange(5))
+    np.testing.assert_array_equal(s.count, [3, 2])
+    assert np.isnan([s.min[0], s.max[0], s.mean[0], s.std[0]]).all()
+    np.testing.assert_allclose([s.min[1], s.max[1], s.mean[1], s.std[1]], [4, 5, 4.5, 0.5])
+
+
+@pytest.mark.parametrize("dt", [np.float32, np.float64])
+def test_inbox_point_stats_against_brute_force(dt):
+    """Count and intensity statistics of the points inside each box, against a dense
+    membership and numpy's reductions; points with a NaN / inf coordinate are in no box,
+    those with a non-finite intensity are left out of the statistics and of the count."""
+    rng = np.random.default_rng(7)
+    pts, boxes = random_scene(rng, 4000, 50, dtype=dt)
+    inten = rng.uniform(0, 255, len(pts)).astype(dt)
+    inten[rng.choice(len(pts), 200, replace=False)] = np.nan
+    inten[rng.choice(len(pts), 20, replace=False)] = np.inf
+    pts[rng.choice(len(pts), 100, replace=False), rng.integers(0, 3)] = np.nan
+    boxes = np.concatenate([boxes, [[500, 500, 0, 1, 1, 1, 0], [0, 0, 0, np.nan, 1, 1, 0]]])
+    st_, n_usable = bg.inbox_point_stats(pts, inten, boxes)
+    usable = np.isfinite(pts).all(axis=1) & np.isfinite(inten)
+    assert n_usable == np.count_nonzero(usable)
+    dense = ref_inside(pts, boxes) & usable[:, None]
+    for j in range(len(boxes)):
+        v = inten[dense[:, j]].astype(np.float64)
+        assert st_.count[j] == len(v)
+        if len(v):
+            np.testing.assert_allclose([st_.min[j], st_.max[j], st_.mean[j], st_.std[j]],
+                                       [v.min(), v.max(), v.mean(), v.std()], rtol=1e-12)
+        else:
+            assert (st_.min[j], st_.max[j], st_.mean[j], st_.std[j]) == (0, 0, 0, 0)
+    assert st_.count[-2:].tolist() == [0, 0]
+    # the caller's usable count is taken as given
+    assert bg.inbox_point_stats(pts, inten, boxes, 123)[1] == 123
+
+
+def test_box_table_matches_numpy_formulas():
+    """The compiled box table: half sizes grown by the margin, the BEV half extents and
+    which boxes are valid / gridable, as the numpy formulas give them."""
+    rng = np.random.default_rng(3)
+    b = np.column_stack([rng.uniform(-50, 50, (40, 3)), rng.uniform(0.1, 8, (40, 3)),
+                         rng.uniform(-4, 4, 40)])
+    b[0, 3] = 0.0
+    b[1, 4] = -1.0
+    b[2, 6] = np.nan
+    b[3, 0] = np.inf
+    b[4, 0] = 2e15
+    b[5, 3:7] = 1.79e308, 1.79e308, 1.0, 0.5  # finite half extents, an infinite side
+    b[6, 5] = 0.05   # with margin -0.1: a negative half height
+    for margin in (0.0, 0.3, -0.1):
+        valid, gridable, side, t = bg._box_table(b, margin)
+        with np.errstate(over="ignore", invalid="ignore"):
+            c, s = np.cos(b[:, 6]), np.sin(b[:, 6])
+            half = b[:, 3:6] / 2.0 + margin
+            ex = np.abs(c) * half[:, 0] + np.abs(s) * half[:, 1]
+            ey = np.abs(s) * half[:, 0] + np.abs(c) * half[:, 1]
+            ref_side = 2.0 * np.maximum(ex, ey)
+            ref_valid = (np.isfinite(b).all(axis=1) & (np.min(b[:, 3:6], axis=1) > 0.0)
+                         & (np.min(half, axis=1) >= 0.0) & np.isfinite(half).all(axis=1))
+            ref_grid = (ref_valid & np.isfinite(ref_side) & (np.abs(b[:, 0]) < 1e15)
+                        & (np.abs(b[:, 1]) < 1e15))
+        np.testing.assert_array_equal(valid, ref_valid)
+        np.testing.assert_array_equal(gridable, ref_grid)
+        ok = np.isfinite(ref_side)
+        np.testing.assert_array_equal(side[ok], ref_side[ok])
+        for got, ref in zip(t, (b[:, 0], b[:, 1], b[:, 2], c, s, half[:, 0], half[:, 1],
+                                half[:, 2], ex, ey)):
+            np.testing.assert_array_equal(got, ref)
+        assert not valid[:4].any() and not gridable[4] and not gridable[5]
+        assert valid[6] == (margin > -0.1)
+
+
 @pytest.mark.parametrize("size", [1e-3, 1e-20, 1e-39])
 def test_tiny_boxes(size):
     boxes = np.array([[0.0, 0.0, 0.0, size, size, size, 0.3], [1.0, 0, 0, size, size, size, 0]])
