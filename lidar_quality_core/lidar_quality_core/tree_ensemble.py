@@ -53,13 +53,40 @@ def _step(X, r, i, ft, th, nr):
 @njit("void(float32[:, ::1], int32[:, ::1], float32[:, ::1], int8[:, ::1], float32[:, ::1], "
       "int64, float32, float32[::1])", cache=True, nogil=True)
 def _margins(X, feature, threshold, nan_right, leaf, depth, base, out):
-    # four rows at a time, each tree walked for the four together: their walks are
-    # independent chains of loads the CPU overlaps, kept in registers (a block of rows
+    # eight rows at a time (then four, then one), each tree walked for all of them
+    # together: their walks are independent chains of loads the CPU overlaps, kept in
+    # registers (eight against four: 15 % faster on the shipped models; a block of rows
     # walked level by level through an index array was 1.2x slower, one row at a time
     # 2x); each row still sums its leaves in tree order
     n, n_trees = X.shape[0], feature.shape[0]
     inner = (1 << depth) - 1
     r = 0
+    while r + 8 <= n:
+        a0 = a1 = a2 = a3 = a4 = a5 = a6 = a7 = base
+        for t in range(n_trees):
+            ft, th, nr = feature[t], threshold[t], nan_right[t]
+            i0 = i1 = i2 = i3 = i4 = i5 = i6 = i7 = 0
+            for _ in range(depth):
+                i0 = _step(X, r, i0, ft, th, nr)
+                i1 = _step(X, r + 1, i1, ft, th, nr)
+                i2 = _step(X, r + 2, i2, ft, th, nr)
+                i3 = _step(X, r + 3, i3, ft, th, nr)
+                i4 = _step(X, r + 4, i4, ft, th, nr)
+                i5 = _step(X, r + 5, i5, ft, th, nr)
+                i6 = _step(X, r + 6, i6, ft, th, nr)
+                i7 = _step(X, r + 7, i7, ft, th, nr)
+            lt = leaf[t]
+            a0 += lt[i0 - inner]
+            a1 += lt[i1 - inner]
+            a2 += lt[i2 - inner]
+            a3 += lt[i3 - inner]
+            a4 += lt[i4 - inner]
+            a5 += lt[i5 - inner]
+            a6 += lt[i6 - inner]
+            a7 += lt[i7 - inner]
+        out[r], out[r + 1], out[r + 2], out[r + 3] = a0, a1, a2, a3
+        out[r + 4], out[r + 5], out[r + 6], out[r + 7] = a4, a5, a6, a7
+        r += 8
     while r + 4 <= n:
         a0 = a1 = a2 = a3 = base
         for t in range(n_trees):

@@ -134,9 +134,9 @@ def _walk_row_by_row(te, X):
     return out
 
 
-@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 7, 8, 9, 13])
+@pytest.mark.parametrize("n", [1, 2, 3, 4, 5, 7, 8, 9, 11, 12, 13, 15, 16, 21])
 def test_rows_grouped_or_not_give_the_same_bits(n):
-    # the walk takes rows four at a time and the rest one by one: every remainder
+    # the walk takes rows eight at a time, then four, then one by one: every remainder
     rng = np.random.default_rng(20 + n)
     booster, X = _train(rng, "binary:logistic", 4, missing_frac=0.3, rounds=25)
     te, _ = pack(booster)
