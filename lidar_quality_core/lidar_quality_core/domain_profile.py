@@ -190,25 +190,31 @@ def psi(profile: QuantityProfile, values) -> float:
     return psi_counts(profile, fine_counts(profile, values))
 
 
-@njit("void(float64[:, ::1], int64[::1], float64[:, ::1], float64[:, ::1])", cache=True,
-      nogil=True)
-def _add_counts(V, rows, edges, out):
+@njit("void(float64[:, ::1], int64[::1], float64[:, ::1], boolean[::1], float64[:, ::1])",
+      cache=True, nogil=True)
+def _add_counts(V, rows, edges, sorted_edges, out):
     """Add :func:`fine_counts` of each column ``j`` of ``V`` (n, k) to ``out[rows[j]]``
     against ``edges[rows[j]]`` (one compiled pass: a value's bin is the number of edges at
-    or below it; a non-finite value is missing)."""
+    or below it; a non-finite value is missing). ``sorted_edges[r]``: the edges of row
+    ``r`` are finite and ascending, so that all of them can be compared without a branch
+    (half the time of stopping at the first edge above the value, whose exit the CPU
+    mispredicts); otherwise the bin is where the first edge above the value is."""
     n, k = V.shape
     n_edges = edges.shape[1]
-    for j in range(k):
-        r = rows[j]
-        e = edges[r]
-        for i in range(n):
+    for i in range(n):  # V's row order: one contiguous pass
+        for j in range(k):
+            r = rows[j]
             v = V[i, j]
             if not np.isfinite(v):
                 out[r, n_edges + 1] += 1.0
                 continue
             b = 0
-            while b < n_edges and e[b] <= v:
-                b += 1
+            if sorted_edges[r]:
+                for m in range(n_edges):
+                    b += edges[r, m] <= v
+            else:
+                while b < n_edges and edges[r, b] <= v:
+                    b += 1
             out[r, b] += 1.0
 
 
@@ -342,6 +348,8 @@ class DriftMonitor:
         qs = [profile.quantities[k] for k in self._names]
         self._index = {k: i for i, k in enumerate(self._names)}
         self._edges = np.array([q.quantiles[1:-1] for q in qs]).reshape(-1, N_FINE - 1)
+        self._sorted_edges = (np.isfinite(self._edges).all(axis=1)
+                              & (np.diff(self._edges, axis=1) >= 0).all(axis=1))
         self._mass = np.array([_fine_mass(q) for q in qs]).reshape(-1, N_FINE + 1)
         self._train_n = np.array([q.count for q in qs], np.float64)
         self._spread = np.array([q.spread for q in qs], np.float64)
@@ -389,7 +397,7 @@ class DriftMonitor:
         for names, V in groups:
             _add_counts(np.require(V, np.float64, "CW"),
                         np.array([self._index[k] for k in names], np.int64),
-                        self._edges, counts)
+                        self._edges, self._sorted_edges, counts)
         self._counts.append(counts)
         self._values.append(frame)
         self._total += counts

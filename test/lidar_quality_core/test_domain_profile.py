@@ -222,6 +222,29 @@ def test_check_rebuilds_its_words_on_change_and_every_words_every_frames():
     assert stale > 0
 
 
+@pytest.mark.parametrize("branchless", [True, False])
+def test_monitor_counts_are_fine_counts(branchless):
+    """A frame's bin counts, compared against every edge at once (finite, ascending edges)
+    or up to the first edge above the value (any other row), are ``fine_counts``: values
+    on an edge, in point masses, NaN and inf included."""
+    from lidar_quality_core.domain_profile import fine_counts
+
+    rng = np.random.default_rng(11)
+    train = {"a": rng.normal(size=3000), "b": rng.integers(0, 3, 3000).astype(float)}
+    prof = DomainProfile.of(train, {k: np.repeat(np.arange(6), 500) for k in train})
+    mon = DriftMonitor(prof, window=3, min_frames=1, min_values=1)
+    assert mon._sorted_edges.all()
+    if not branchless:
+        mon._sorted_edges[:] = False
+    edges_a = np.asarray(prof.quantities["a"].quantiles[1:-1])
+    X = np.column_stack([np.r_[rng.normal(size=60), edges_a, [np.nan, np.inf, -np.inf]],
+                         np.r_[rng.integers(-1, 4, 60 + len(edges_a)), [np.nan] * 3]])
+    mon.add((("a", "b"), X))
+    for j, name in enumerate(("a", "b")):
+        np.testing.assert_array_equal(mon._counts[-1][mon._index[name]],
+                                      fine_counts(prof.quantities[name], X[:, j]))
+
+
 def test_monitor_reads_a_matrix_as_its_columns():
     """``add((names, X))`` (lms_node's metrics) scores and words as ``add`` of the columns,
     a column the profile does not know left out."""
