@@ -3,7 +3,7 @@
 Why: lms_node publishes one entry per segment, about 2000 a frame. Building them as
 Python messages took 1.1-1.5 ms and rclpy's conversion of the array for publishing
 another 2.0 ms (measured, one 64 x 2048 frame, 2051 segments); written here from the
-frame's arrays it is a few array operations. The bytes are what rclpy serializes for the
+frame's arrays by one compiled writer it costs 0.03 ms. The bytes are what rclpy serializes for the
 same message (padding bytes aside; ``test_segment_quality_cdr`` compares them).
 
 Layout (plain little-endian CDR, ``00 01``; each primitive aligned to its size relative
@@ -18,8 +18,10 @@ on one and has a size that depends on its class name only. No rclpy.
 from __future__ import annotations
 
 import numpy as np
+from numba import njit, types
 
-from .quality_array_cdr import append_version_fields, array_head, cdr_string
+from .kernel_types import array_in, array_out
+from .quality_array_cdr import append_version_fields, array_head, cdr_strings
 
 __all__ = ["encode_segment_quality_array"]
 
@@ -34,40 +36,65 @@ def encode_segment_quality_array(header, confidence_model_id: str, iou_model_id:
     ``class_index[i]`` (named ``class_names[class_index[i]]``), the counts, confidence
     and predicted IoU at ``i`` (arrays of one length); the keyword fields as in
     ``DomainVerdict.message_fields``."""
-    cls = np.asarray(class_index, dtype=np.int64).reshape(-1)
+    cls = np.ascontiguousarray(class_index, dtype=np.int64).reshape(-1)
     n = len(cls)
+    if n and (cls.min() < 0 or cls.max() >= len(class_names)):
+        raise ValueError(f"class_index outside 0..{len(class_names) - 1}")
+    counts = np.column_stack([np.asarray(point_count, np.int64).reshape(-1),
+                              np.asarray(projected_point_count, np.int64).reshape(-1)])
+    values = np.column_stack([np.asarray(confidence, "<f8").reshape(-1),
+                              np.asarray(predicted_iou, "<f8").reshape(-1)])
+    if len(counts) != n or len(values) != n:
+        raise ValueError(f"counts, confidence and predicted_iou must have {n} entries")
     head = array_head(header, confidence_model_id, iou_model_id, n)
-    first = len(head)
-    # per class: the name as CDR string words, and where point_count sits in the entry
-    names = [cdr_string(c) for c in class_names]
-    name_words = [np.frombuffer(s + b"\0" * (-len(s) % 4), "<u4") for s in names]
-    counts_at = np.array([8 + 4 * len(w) for w in name_words], dtype=np.int64)
-    # offsets from the entry's start; the float64 pair 8-aligned (relative to byte 4)
-    at = counts_at[cls] + 8
-    phase = np.zeros(n, dtype=np.int64)
-    if n:
-        phase[0] = (first - 4) % 8
-    doubles_at = at + (-(at + phase) % 8)
-    size = doubles_at + 16
-    starts = first + np.concatenate([[0], np.cumsum(size[:-1])]) if n else np.zeros(0, np.int64)
-    end = first + int(size.sum())
-    words = np.zeros((end + 3) // 4, dtype="<u4")
-    w0 = starts // 4
-    words[w0] = np.arange(n)
-    words[w0 + 1] = cls  # uint16 class_index, then two padding bytes
-    for c in np.unique(cls).tolist():  # one pass per class present (a few)
-        rows = w0[cls == c] + 2
-        words[rows[:, None] + np.arange(len(name_words[c]))] = name_words[c]
-    pc = w0 + counts_at[cls] // 4
-    words[pc] = np.asarray(point_count, dtype=np.int64)
-    words[pc + 1] = np.asarray(projected_point_count, dtype=np.int64)
-    dw = (starts + doubles_at) // 4
-    pair = np.column_stack([np.asarray(confidence, dtype="<f8"),
-                            np.asarray(predicted_iou, dtype="<f8")]).view("<u4")
-    words[dw[:, None] + np.arange(4)] = pair.reshape(n, 4)
-    out = bytearray(words.tobytes()[:end])
-    out[:first] = head
+    names, name_at = cdr_strings(class_names)
+    out = head + _segments(len(head), cls, names, name_at, np.ascontiguousarray(counts),
+                           values.view(np.uint8).reshape(n, 16)).tobytes()
     return append_version_fields(
         out, version=version, drift_level=drift_level, drift_score=drift_score,
         drift_window_frames=drift_window_frames, drift_quantities=drift_quantities,
         passthrough=passthrough)
+
+
+@njit(array_out(types.uint8)(types.int64, array_in(types.int64), array_in(types.uint8),
+                             array_in(types.int64), array_in(types.int64, 2),
+                             array_in(types.uint8, 2)), cache=True, nogil=True)
+def _segments(start, cls, names, name_at, counts, values):
+    # The entries from byte ``start`` of the message, positions relative to its byte 4 as
+    # in ``quality_array_cdr.pad``; padding bytes zero. ``names``: the class names as
+    # whole CDR strings (``cdr_strings``); ``values`` row i: entry i's two float64 as
+    # little-endian bytes. Two passes (size, then bytes): as numpy array operations, with
+    # a pass per class present, 2000 segments took 0.36 ms, this 0.03.
+    n = len(cls)
+    p = start
+    for i in range(n):
+        # id, class index (+2 padding), the name (4-aligned after the uint16 pair), the
+        # two counts (4-aligned), the two float64 (8-aligned)
+        p += 8 + name_at[cls[i] + 1] - name_at[cls[i]]
+        p += (-(p - 4)) % 4 + 8
+        p += (-(p - 4)) % 8 + 16
+    out = np.zeros(p - start, np.uint8)
+    p = start
+
+    def u32(q, v):
+        for b in range(4):
+            out[q - start + b] = (v >> (8 * b)) & 0xFF
+
+    for i in range(n):
+        c = cls[i]
+        u32(p, i)
+        out[p + 4 - start] = c & 0xFF
+        out[p + 5 - start] = (c >> 8) & 0xFF
+        q, k = p + 8 - start, name_at[c + 1] - name_at[c]
+        for b in range(k):  # element loops: a slice is a view object an entry
+            out[q + b] = names[name_at[c] + b]
+        p += 8 + k
+        p += (-(p - 4)) % 4
+        u32(p, counts[i, 0])
+        u32(p + 4, counts[i, 1])
+        p += 8
+        p += (-(p - 4)) % 8
+        for b in range(16):
+            out[p - start + b] = values[i, b]
+        p += 16
+    return out

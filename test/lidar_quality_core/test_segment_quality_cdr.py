@@ -40,3 +40,12 @@ def test_bytes_are_the_message(seed, n):
     assert_entries_equal(got.segments, want.segments,
                          ("segment_id", "class_index", "class_name", "point_count",
                           "projected_point_count"), ("confidence", "predicted_iou"))
+
+
+def test_class_index_outside_the_names_raises():
+    args, fields = _case(0, 3)
+    args = list(args)
+    for bad in ([0, 1, len(args[4])], [0, -1, 0]):
+        args[3] = np.array(bad)
+        with pytest.raises(ValueError, match="class_index"):
+            encode_segment_quality_array(*args, **fields)
