@@ -210,14 +210,12 @@ def _class_probabilities(arrays: DetectionArrays, class_names):
     """``(probs (n, 1 + C) with background column 0, has a known class (n,), all known
     scores in [0, 1] (n,))`` (module docstring)."""
     n = len(arrays)
-    fg = np.zeros((n, len(class_names)))
-    known = np.zeros(n, bool)
-    for c, name in enumerate(class_names):
-        s = arrays.class_scores.get(name)
-        if s is not None:
-            have = ~np.isnan(s)
-            known |= have
-            fg[have, c] = s[have]
+    missing = np.full(n, np.nan)
+    fg = np.column_stack([arrays.class_scores.get(name, missing) for name in class_names]
+                         ) if len(class_names) else np.zeros((n, 0))
+    have = ~np.isnan(fg)
+    known = have.any(axis=1)
+    fg[~have] = 0.0
     with np.errstate(invalid="ignore"):
         in_range = ((fg >= 0.0) & (fg <= 1.0)).all(axis=1)
     probs = np.empty((n, 1 + len(class_names)))
@@ -247,7 +245,8 @@ def _variances(msg, arrays: DetectionArrays, issues: list | None) -> np.ndarray:
     # as object arrays: a Python loop over the entries cost 0.07 ms a head)
     idx = np.asarray(idx, np.int64)
     match = (idx >= 0) & (idx < n)
-    if len(ids):
+    in_order = len(ids) == n and ids == arrays.ids and bool((idx == np.arange(n)).all())
+    if len(ids) and not in_order:  # (in order, the usual case: every id matches)
         named = np.array(ids, dtype=object)
         same = named == ""
         same[match] |= np.array(arrays.ids, dtype=object)[idx[match]] == named[match]

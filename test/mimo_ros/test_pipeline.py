@@ -160,6 +160,25 @@ def test_variance_entries_without_id_or_out_of_range_index():
         assert any("1 variance entry ignored" in t for t in issues)
 
 
+def test_variance_entries_in_order_or_permuted_match_alike():
+    """Entries in detection order (the usual message) and the same entries reordered
+    give each detection its own variances."""
+    v = var_msg(ids=[5, 6, 7])
+    hd, _ = head_detections(head_msg(ids=[5, 6, 7]), v, MimoSettings(), issues=[])
+    np.testing.assert_allclose(hd.variances, VAR)
+    v.variances = [v.variances[k] for k in (2, 0, 1)]
+    for msg in (v, decode_box_variance_array(serialize_message(v))):
+        issues = []
+        hd, _ = head_detections(head_msg(ids=[5, 6, 7]), msg, MimoSettings(), issues=issues)
+        np.testing.assert_allclose(hd.variances, VAR)
+        assert not issues
+    # in order by index, but one id names another detection: that entry is ignored
+    v = var_msg(ids=[5, 6, 8])
+    issues = []
+    hd, _ = head_detections(head_msg(ids=[5, 6, 7]), v, MimoSettings(), issues=issues)
+    assert np.isnan(hd.variances[2]).all() and any("1 variance entry" in t for t in issues)
+
+
 def test_class_distribution_conversion():
     hd, a = head_detections(head_msg(), None, MimoSettings())
     np.testing.assert_allclose(hd.class_scores, full_probs(FG))
