@@ -95,18 +95,14 @@ class _BoxTable(NamedTuple):
     ex: np.ndarray  # BEV axis-aligned half extents
     ey: np.ndarray
 
-    def take(self, idx):
-        return _BoxTable(*(np.take(a, idx) for a in self))
-
 
 def _box_table(b: np.ndarray, margin: float):
-    """(valid mask, gridable mask, BEV side, _BoxTable) with half sizes grown by ``margin``;
-    side: twice the larger BEV half extent; gridable: valid, with a finite side and
-    |centre| < 1e15 (``_inside_pairs``)."""
+    """(valid mask, gridable mask, BEV side, (10, N) columns in _BoxTable's order) with half
+    sizes grown by ``margin``; side: twice the larger BEV half extent; gridable: valid, with
+    a finite side and |centre| < 1e15 (``_inside_pairs``)."""
     with np.errstate(over="ignore", invalid="ignore"):
         c, s = np.cos(b[:, 6]), np.sin(b[:, 6])
-    valid, gridable, side, cols = _box_columns(b, c, s, float(margin))
-    return valid, gridable, side, _BoxTable(*cols)
+    return _box_columns(b, c, s, float(margin))
 
 
 @njit("Tuple((boolean[::1], boolean[::1], float64[::1], float64[:, ::1]))(float64[:, ::1], "
@@ -166,7 +162,7 @@ def _inside_pairs(points, boxes, margin=0.0):
     empty = (np.zeros(0, np.int64), np.zeros(0, np.int64))
     if len(p) == 0 or len(b) == 0 or not np.isfinite(margin):
         return empty
-    valid, gridable, side, tab = _box_table(b, float(margin))
+    valid, gridable, side, cols = _box_table(b, float(margin))
     if not valid.any():
         return empty
     out_pt, out_bx = [], []
@@ -178,7 +174,7 @@ def _inside_pairs(points, boxes, margin=0.0):
         cs = _CELL_FACTOR * float(np.partition(sg, len(sg) // 2)[len(sg) // 2])  # ~median
         normal = np.flatnonzero(gridable & (side <= _BIG_BOX_CELLS * cs))
         if len(normal):
-            _grid_pairs(p, tab, normal, cs, out_pt, out_bx)
+            _grid_pairs(p, cols, normal, cs, out_pt, out_bx)
 
     x, y, z = p[:, 0], p[:, 1], p[:, 2]
     brute = valid.copy()  # a mask, not np.setdiff1d: its sort cost 0.36 ms a frame
@@ -186,7 +182,7 @@ def _inside_pairs(points, boxes, margin=0.0):
     for j in np.flatnonzero(brute):
         # brute force, one box at a time (memory O(M)); only pathological inputs get here
         with np.errstate(invalid="ignore", over="ignore"):
-            m = _exact(x, y, z, tab.take([j]))
+            m = _exact(x, y, z, _BoxTable(*cols[:, j:j + 1]))
         out_pt.append(np.flatnonzero(m))
         out_bx.append(np.full(len(out_pt[-1]), j, dtype=np.int64))
     if not out_pt:
@@ -196,11 +192,12 @@ def _inside_pairs(points, boxes, margin=0.0):
     return np.concatenate(out_pt), np.concatenate(out_bx)
 
 
-def _grid_pairs(p, tab: _BoxTable, normal, cs, out_pt, out_bx):
-    """Inside pairs of the ``normal`` boxes via a coarse BEV grid (appends to the lists)."""
+def _grid_pairs(p, cols: np.ndarray, normal, cs, out_pt, out_bx):
+    """Inside pairs of the ``normal`` boxes (``cols``: _box_table's columns) via a coarse BEV
+    grid (appends to the lists)."""
     ftype = np.float32 if p.dtype == np.float32 else np.float64
     x0, y0, inv, nx, ny, cell_start, cell_cnt, cell_box, cell_rows = _cell_table(
-        np.stack(tab), np.ascontiguousarray(normal, dtype=np.int64), float(cs),
+        cols, np.ascontiguousarray(normal, dtype=np.int64), float(cs),
         float(np.finfo(ftype).eps), 1e-30 if ftype is np.float32 else 1e-200)
     if p.dtype != ftype:
         p = p.astype(ftype)

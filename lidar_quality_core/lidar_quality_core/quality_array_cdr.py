@@ -85,6 +85,14 @@ def array_head(header, confidence_model_id: str, iou_model_id: str, n: int) -> b
     return head
 
 
+@njit(inline="always")
+def put_u32(out, at, v):
+    """Write ``v`` as a little-endian uint32 at byte ``at`` of the uint8 array ``out``
+    (for the compiled entry writers)."""
+    for b in range(4):
+        out[at + b] = (v >> (8 * b)) & 0xFF
+
+
 @njit(array_out(types.uint8)(types.int64, array_in(types.uint8), array_in(types.int64),
                              array_in(types.uint8), array_in(types.int64), array_in(types.int64),
                              types.boolean, array_in(types.uint8, 2)), cache=True, nogil=True)
@@ -103,14 +111,9 @@ def _entries(start, ids, id_at, classes, class_at, counts, with_counts, values):
         p += (-(p - 4)) % 8 + width
     out = np.zeros(p - start, np.uint8)
     p = start
-
-    def u32(q, v):
-        for b in range(4):
-            out[q - start + b] = (v >> (8 * b)) & 0xFF
-
     for i in range(n):
         p += (-(p - 4)) % 4
-        u32(p, i)
+        put_u32(out, p - start, i)
         k = id_at[i + 1] - id_at[i]
         out[p + 4 - start:p + 4 + k - start] = ids[id_at[i]:id_at[i + 1]]
         p += 4 + k
@@ -120,7 +123,7 @@ def _entries(start, ids, id_at, classes, class_at, counts, with_counts, values):
         p += k
         if with_counts:
             p += (-(p - 4)) % 4
-            u32(p, counts[i])
+            put_u32(out, p - start, counts[i])
             p += 4
         p += (-(p - 4)) % 8
         out[p - start:p + width - start] = values[i]
