@@ -172,24 +172,16 @@ def dispersion(probs: np.ndarray, sums: tuple[np.ndarray, np.ndarray] | None = N
     scale = np.float32(-1.0 / np.log(n))
     probs = _readable(probs)
     class_major = _class_major(probs)
-    if class_major:
-        pcm = probs.T
+    pcm = probs.T if class_major else None
     step = max(1, _DISPERSION_BLOCK // n)
     tbuf = None if class_major else np.empty(step * n, dtype=np.float32)
 
     def run(clamp: bool):
-        smallest, nan = np.float32(np.inf), False
-        for b0 in range(0, N, step):
-            m = min(step, N - b0)
-            if class_major:
-                src, col0 = pcm, b0
-            else:   # class rows of the block, in cache
-                src, col0 = tbuf[:m * n].reshape(n, m), 0
-                _k.transpose_block(probs, b0, src)
-            lo, bad = _k.dispersion_block(src, col0, m, b0, clamp, _TINY, scale, cls, E, D, V,
-                                          p_sum, p_min)
-            smallest, nan = min(smallest, lo), nan or bad
-        return smallest, nan
+        if class_major:
+            return _k.dispersion_columns(pcm, step, clamp, _TINY, scale, cls, E, D, V,
+                                         p_sum, p_min)
+        return _k.dispersion_rows(probs, step, clamp, _TINY, scale, tbuf, cls, E, D, V,
+                                  p_sum, p_min)
 
     # 0 log 0 = 0: the logs read max(p, tiny) when some p is <= 0 or NaN, which is known
     # after the pass: assumed, and the entropy redone in the rare case of tiny positive
