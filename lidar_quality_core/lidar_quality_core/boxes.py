@@ -26,7 +26,7 @@ TILT_TOLERANCE_DEG = 1.0
 @njit(types.Tuple((array_out(types.float64, 2), array_out(types.float64, 2),
                     array_out(types.float64)))(array_in(types.float64, 2, "A")),
       cache=True, nogil=True, error_model="numpy")
-def _rpy_terms(q):
+def rpy_terms(q):
     """Arguments of ``quaternion_to_rpy``'s three functions, in one pass: the normalised
     quaternion's ``(y, x)`` of roll and yaw (rows 0, 1) and the clipped sine of pitch; the
     same operations in the same order as numpy's (``np.linalg.norm``: ((x² + y²) + z²)
@@ -47,8 +47,12 @@ def _rpy_terms(q):
 def quaternion_to_rpy(q: np.ndarray) -> np.ndarray:
     """(N, 4) quaternions ``x, y, z, w`` (any norm > 0) -> (N, 3) roll, pitch, yaw (ZYX)."""
     q = np.asarray(q, dtype=np.float64).reshape(-1, 4)
-    num, den, sine = _rpy_terms(q)
-    out = np.empty((len(q), 3))
+    return rpy_angles(*rpy_terms(q))
+
+
+def rpy_angles(num: np.ndarray, den: np.ndarray, sine: np.ndarray) -> np.ndarray:
+    """(N, 3) roll, pitch, yaw from :func:`rpy_terms`' arguments."""
+    out = np.empty((len(sine), 3))
     # numpy's arctan2 / arcsin (one call each): the angles stay those of its libm
     roll_yaw = np.arctan2(num, den)
     out[:, 0], out[:, 1], out[:, 2] = roll_yaw[0], np.arcsin(sine), roll_yaw[1]
@@ -127,7 +131,7 @@ def detections_to_arrays(detections) -> DetectionArrays:
     return arrays_from_fields(raw, ids, hyp_det, hyp_cls, hyp_sc)
 
 
-#: ``_hypotheses``' flags, in the order the reasons are listed
+#: ``hypothesis_table``'s flags, in the order the reasons are listed
 _REASONS = ((1, "no hypothesis in results"), (2, "non-finite centre"), (4, "non-finite size"),
             (8, "size <= 0"), (16, "non-finite orientation"), (32, "zero quaternion"),
             (64, "non-finite score"))
@@ -135,7 +139,7 @@ _REASONS = ((1, "no hypothesis in results"), (2, "non-finite centre"), (4, "non-
 
 @njit("Tuple((float64[::1], int64[::1], float64[:, ::1], int64[::1]))(float64[:, ::1], "
       "int64[::1], int64[::1], float64[::1], boolean[::1])", cache=True, nogil=True)
-def _hypotheses(raw, det, codes, sc, name_empty):
+def hypothesis_table(raw, det, codes, sc, name_empty):
     """Per detection: score and class code (-1: none) of its top hypothesis, the class
     score table (classes, N) and the flags of ``_REASONS``; one pass in message order."""
     n, n_hyp, n_names = raw.shape[0], det.shape[0], name_empty.shape[0]
@@ -213,15 +217,24 @@ def arrays_from_fields(raw: np.ndarray, ids: list[str], hyp_det, hyp_cls, hyp_sc
                             count=n_hyp)
         names = list(lut)
     name_empty = np.array([not c for c in names], dtype=np.bool_)
-    scores, top, cls, flags = _hypotheses(*(np.require(a, t, "CW") for a, t in (
+    scores, top, cls, flags = hypothesis_table(*(np.require(a, t, "CW") for a, t in (
         (raw, np.float64), (det, np.int64), (codes, np.int64), (sc, np.float64),
         (name_empty, np.bool_))))
+    rpy = quaternion_to_rpy(raw[:, 6:10]) if n else np.zeros((0, 3))
+    return arrays_from_table(raw, ids, names, scores, top, cls, flags, rpy)
+
+
+def arrays_from_table(raw: np.ndarray, ids: list[str], names: list[str], scores, top, cls,
+                      flags, rpy) -> DetectionArrays:
+    """The DetectionArrays of :func:`arrays_from_fields` from its compiled parts:
+    ``hypothesis_table``'s ``(scores, top, cls, flags)`` and the (N, 3) roll, pitch, yaw
+    ``rpy`` (``detection_cdr`` computes both in its decoding pass)."""
+    n = len(raw)
     hyps = {name: cls[k] for k, name in enumerate(names)}
     labels = [names[c] if c >= 0 else "" for c in top.tolist()]
     reasons = [""] * n
     for i, f in zip(np.flatnonzero(flags).tolist(), flags[flags != 0].tolist()):
         reasons[i] = "; ".join(why for bit, why in _REASONS if f & bit)
-    rpy = quaternion_to_rpy(raw[:, 6:10]) if n else np.zeros((0, 3))
     boxes = np.concatenate([raw[:, :6], rpy[:, 2:3]], axis=1)
     valid = flags == 0
     return DetectionArrays(boxes=boxes, scores=scores, labels=labels, ids=list(ids),

@@ -193,15 +193,23 @@ def test_class_names_sharing_prefixes_and_lengths():
     assert dec.arrays.labels == names
 
 
+def _step_by_step(raw, p, n):
+    """A ``_decode`` that declines every message: the decoder then takes its step-by-step
+    path (``_walk``, ``_fields``, ``boxes.arrays_from_fields``)."""
+    return (False,) + (None,) * 19
+
+
 def _decode_both(data, monkeypatch):
-    """(result or CdrError text) of the decoder with the compiled walk, and with the Python
-    loop walking the layout and ``_class_codes`` grouping the class names."""
+    """(result or CdrError text) of the decoder with its compiled pass, and with the
+    Python loop walking the layout and ``_class_codes`` grouping the class names."""
     from lidar_quality_core import detection_cdr
 
     out = []
     compiled = detection_cdr._walk
     for walk in (compiled, lambda raw, p, n: (0,) + (None,) * 9):
         monkeypatch.setattr(detection_cdr, "_walk", walk)
+        if walk is not compiled:
+            monkeypatch.setattr(detection_cdr, "_decode", _step_by_step)
         try:
             out.append(decode_detection_array(data))
         except CdrError as exc:
@@ -225,6 +233,40 @@ def test_compiled_walk_finds_what_the_loop_finds(seed, same_headers, monkeypatch
                  "hyp_score_at", "hyp_score"):
         np.testing.assert_array_equal(getattr(fast, name), getattr(loop, name))
     assert encode_detection_array(fast, np.arange(n)) == encode_detection_array(loop, np.arange(n))
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_one_compiled_pass_decodes_as_the_steps_do(seed, monkeypatch):
+    """``_decode`` (walk, fields, ids, hypothesis rules and angle terms in one compiled
+    call) gives what the step-by-step path gives: every array and offset, with empty
+    class names, NaN / inf scores and boxes, zero quaternions and detections without
+    hypotheses among them."""
+    from lidar_quality_core import detection_cdr
+
+    msg = random_array(seed, n=60, same_headers=seed % 2 == 0)
+    rng = np.random.default_rng(seed)
+    for d in msg.detections[::5]:
+        d.results = d.results[:int(rng.integers(0, 2))]
+    for d in msg.detections[1::7]:
+        if d.results:
+            d.results[0].hypothesis.class_id = ""
+            d.results[-1].hypothesis.score = float(rng.choice([np.nan, np.inf, -np.inf]))
+    msg.detections[2].bbox.center.orientation.x = msg.detections[2].bbox.center.orientation.y = 0.0
+    msg.detections[2].bbox.center.orientation.z = msg.detections[2].bbox.center.orientation.w = 0.0
+    msg.detections[3].bbox.size.x = np.nan
+    msg.detections[4].bbox.center.position.y = np.inf
+    data = serialize_message(msg)
+    buf, _, _, n, p = detection_cdr.open_array(data, "Detection3DArray", "detections", 100)
+    assert detection_cdr._decode(np.frombuffer(buf, np.uint8), p, n)[0]  # taken in one pass
+    fused = decode_detection_array(data)
+    monkeypatch.setattr(detection_cdr, "_decode", _step_by_step)
+    steps = decode_detection_array(data)
+    assert_arrays_equal(fused.arrays, steps.arrays)
+    assert_arrays_equal(fused.arrays, detections_to_arrays(msg))
+    np.testing.assert_array_equal(fused.arrays.roll_pitch, steps.arrays.roll_pitch)
+    for name in ("det_spans", "bbox_at", "id_at", "hyp_offsets", "hyp_det", "hyp_class_at",
+                 "hyp_score_at", "hyp_score"):
+        np.testing.assert_array_equal(getattr(fused, name), getattr(steps, name))
 
 
 def test_many_class_names_are_grouped_alike(monkeypatch):
