@@ -151,7 +151,7 @@ def test_a_cloud_lost_in_transport_is_counted_and_said(ros):
     # DDS reports it lost when the next message arrives. The node (a real lms_node process)
     # counts it in /diagnostics and says why, instead of losing it without a trace. The
     # publisher is test/scripts/cloud_probe.py: a 1 MB cloud, then 72 MB (above the 64 MiB
-    # segment) while the node is stopped for a moment, then a 1 kB one.
+    # segment) while the node is stopped for a moment, then 1 kB ones.
     import subprocess
     import sys
     from pathlib import Path
