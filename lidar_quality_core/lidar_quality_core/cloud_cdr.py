@@ -1,4 +1,5 @@
-"""sensor_msgs/PointCloud2 read from its serialized (CDR) bytes, the point data as a view.
+"""sensor_msgs/PointCloud2 read from its serialized (CDR) bytes, the point data as a view;
+and written as such bytes, the point data filled in place (:func:`serialized_cloud`).
 
 Why: rclpy hands a received cloud over as a message whose ``data`` is an ``array.array``
 built by two more copies of the point bytes (the rmw's deserialization into the C message,
@@ -26,7 +27,7 @@ import numpy as np
 
 from .detection_cdr import CdrError, read_string
 
-__all__ = ["CloudField", "DecodedCloud", "decode_point_cloud"]
+__all__ = ["CloudField", "DecodedCloud", "decode_point_cloud", "serialized_cloud"]
 
 _UINTS = {1: struct.Struct("<I"), 3: struct.Struct("<III")}
 _STAMP = struct.Struct("<iI")
@@ -121,3 +122,41 @@ def decode_point_cloud(data) -> DecodedCloud:
     h.stamp.sec, h.stamp.nanosec = sec, nsec
     return DecodedCloud(h, height, width, tuple(fields), is_big, point_step, row_step,
                         points, is_dense)
+
+
+def serialized_cloud(header, height: int, width: int, fields, is_bigendian: bool,
+                     point_step: int) -> tuple[np.ndarray, np.ndarray]:
+    """A serialized PointCloud2 of ``height * width`` points to fill: ``(message, data)``,
+    ``message`` the whole uint8 buffer (every field written, ``row_step = point_step *
+    width``, ``is_dense`` false: set ``message[-1] = 1`` for a dense cloud) and ``data``
+    the writable view of its ``height * width * point_step`` data bytes, not initialised.
+    ``header``: stamp and frame_id as a std_msgs/Header has them; ``fields``: (name,
+    offset, datatype, count) tuples."""
+    out = bytearray(b"\x00\x01\x00\x00")
+
+    def align(k: int) -> None:
+        out.extend(bytes(-(len(out) - 4) % k))
+
+    def string(text: str) -> None:
+        b = text.encode("utf-8") + b"\0"
+        align(4)
+        out.extend(_UINTS[1].pack(len(b)) + b)
+
+    out += _STAMP.pack(header.stamp.sec, header.stamp.nanosec)
+    string(header.frame_id)
+    align(4)
+    out += _UINTS[3].pack(height, width, len(fields))
+    for name, offset, datatype, count in fields:
+        string(name)
+        align(4)
+        out += _UINTS[1].pack(offset) + bytes((datatype,))
+        align(4)
+        out += _UINTS[1].pack(count)
+    out += bytes((1 if is_bigendian else 0,))
+    n_data = height * width * point_step
+    align(4)
+    out += _UINTS[3].pack(point_step, point_step * width, n_data)
+    message = np.empty(len(out) + n_data + 1, np.uint8)
+    message[:len(out)] = np.frombuffer(out, np.uint8)
+    message[-1] = 0
+    return message, message[len(out):len(out) + n_data]

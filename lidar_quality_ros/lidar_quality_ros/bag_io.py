@@ -36,6 +36,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Callable, Iterator
 
+import numpy as np
 from lidar_quality_core.rosbag_types import typestore
 
 STORAGES = ("mcap", "sqlite3")
@@ -366,7 +367,8 @@ class BagWriter:
 
     def write(self, topic: str, msgtype: str, stamp_ns: int, msg, *, qos=(),
               source: TopicInfo | None = None) -> None:
-        """Write ``msg`` (an rclpy message, or bytes already serialised) on ``topic``;
+        """Write ``msg`` (an rclpy message, or bytes already serialised: bytes-like or a
+        uint8 numpy array, as the nodes publish their outputs) on ``topic``;
         ``qos`` (rclpy QoSProfiles, taken at a topic's first message) are recorded as
         its offered QoS profiles. A type our typestore does not know (copied bytes) is
         recorded with the definition and hash of ``source`` (the input bag's topic), or
@@ -378,7 +380,7 @@ class BagWriter:
         conn = self._conns.get(topic)
         if conn is None:
             conn = self._conns[topic] = self._add(topic, msgtype, qos, source)
-        if isinstance(msg, (bytes, bytearray, memoryview)):
+        if isinstance(msg, (bytes, bytearray, memoryview, np.ndarray)):
             raw = bytes(msg)
         else:
             raw = serialize_message(msg)

@@ -39,6 +39,7 @@ from rclpy.node import Node
 from .diagnostics import NodeDiagnostics
 from .params import declare_spec
 from .qos import output_qos
+from .serialized_publish import is_serialized, publish_serialized
 from .synced_inputs import SyncedInputs
 from .threads import realtime_scheduling
 from .tf_listener import TfListener
@@ -328,7 +329,10 @@ class QualityNode(Node):
             self.diag.clear(cause)
         self.report_issues(out.issues, out.errors)
         for name, msg in out.messages.items():
-            self._outputs[name].publish(msg)
+            if is_serialized(msg):   # CDR bytes: published from where they are
+                publish_serialized(self._outputs[name], msg)
+            else:
+                self._outputs[name].publish(msg)
         if out.markers is not None and self.pub_markers is not None:
             self.pub_markers.publish(out.markers)
         for key, n in out.counts.items():

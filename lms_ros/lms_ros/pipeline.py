@@ -90,11 +90,13 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from lidar_quality_core.cloud_cdr import decode_point_cloud, serialized_cloud
 from lidar_quality_core.domain_profile import DomainCheck, DomainVerdict, DriftParameters
 from lidar_quality_core.conventions import probability_field
 from lidar_quality_core.intensity import IntensityScale, intensity_scale_param
@@ -104,11 +106,11 @@ from lidar_quality_core.parameters import group, param
 from lidar_quality_core.segment_quality_cdr import encode_segment_quality_array
 from lidar_quality_core.pointcloud import (CloudFormatError, PaddingNote, check_xyz_fields,
                                             cloud_to_structured, field_run_view, finite_mask,
-                                            pack_cloud, set_cloud_data, valid_points,
+                                            pack_cloud, valid_points,
                                             xyz_columns)
 from lidar_quality_core.lms import beams, segment_metrics
 from lidar_quality_core.lms.point_results import (RESULT_LAYOUT, pack_point_results,
-                                                  segment_table)
+                                                  result_layout, segment_table)
 from lidar_quality_core.lms.projection import RangeImageConfig
 from lidar_quality_core.lms.segment_metrics import SegmentResult, compute_segments
 
@@ -696,7 +698,7 @@ class LmsOutputs:
     result: SegmentResult
     confidence: np.ndarray
     predicted_iou: np.ndarray
-    points: object           # sensor_msgs/PointCloud2
+    points_cdr: np.ndarray   # output/points as published: serialized PointCloud2 (uint8)
     segments_cdr: bytes      # output/segments as published: serialized SegmentQualityArray
     markers: object | None   # visualization_msgs/MarkerArray
     issues: dict             # key -> message of a throttled warning
@@ -709,6 +711,13 @@ class LmsOutputs:
     build_segments: object = field(default=None, repr=False, compare=False)
 
     @functools.cached_property
+    def points(self):
+        """``output/points`` read back from ``points_cdr`` (what the node publishes) as
+        ``cloud_cdr.DecodedCloud``: the fields of a PointCloud2, read by ``pointcloud``
+        as a message is."""
+        return decode_point_cloud(self.points_cdr.tobytes())
+
+    @functools.cached_property
     def segments(self):
         """``output/segments`` as a lidar_quality_msgs/SegmentQualityArray message (built
         on first use: the node publishes ``segments_cdr``, the same message's bytes)."""
@@ -716,7 +725,7 @@ class LmsOutputs:
 
     @property
     def messages(self) -> dict:
-        return {"output/points": self.points, "output/segments": self.segments_cdr}
+        return {"output/points": self.points_cdr, "output/segments": self.segments_cdr}
 
     @property
     def counts(self) -> dict:
@@ -869,12 +878,13 @@ class LmsProcessor:
 
     @staticmethod
     def output_cloud(header, inp: LmsInput, res: SegmentResult, conf, iou, *,
-                     all_fields: bool = False):
-        """``output/points`` (see the module doc): x, y, z and the results, or with
-        ``all_fields`` every field of ``inp.cloud`` (a field named like a result replaced
-        by it) and the results; the input's height and width."""
-        from sensor_msgs.msg import PointCloud2, PointField
-
+                     all_fields: bool = False) -> np.ndarray:
+        """``output/points`` (see the module doc) as its serialized bytes (uint8): x, y, z
+        and the results, written straight into the message (``cloud_cdr.serialized_cloud``;
+        as a message, rclpy's conversion and the rmw's serialization copied the 3.1 MB of
+        a 120k-point frame twice more), or with ``all_fields`` every field of
+        ``inp.cloud`` (a field named like a result replaced by it) and the results; the
+        input's height and width."""
         N = len(inp)
         h, w = inp.shape if len(inp.shape) == 2 and inp.shape[0] * inp.shape[1] == N \
             else (1, N)
@@ -889,16 +899,17 @@ class LmsProcessor:
                        "predicted_iou": _per_point(res, iou)}
             cols = {nm: flat[nm] for nm in flat.dtype.names if nm not in results}
             packed = pack_cloud({**cols, **results})
-        else:   # the records in one pass (point_results)
+            message, data = serialized_cloud(header, h, w, packed.fields, packed.is_bigendian,
+                                             packed.point_step)
+            data[:] = np.frombuffer(packed.data, np.uint8)
+        else:   # the records in one pass (point_results), into the message
+            dtype, fields = result_layout()
+            message, data = serialized_cloud(header, h, w, fields, sys.byteorder == "big",
+                                             dtype.itemsize)
             packed = pack_point_results(inp.xyz, res.point_class, res.point_segment, conf, iou,
-                                        label=label, height=h)
-        msg = PointCloud2(header=header, height=h, width=w,
-                          fields=[PointField(name=nm, offset=o, datatype=d, count=c)
-                                  for nm, o, d, c in packed.fields],
-                          is_bigendian=packed.is_bigendian, point_step=packed.point_step,
-                          row_step=packed.point_step * w, is_dense=packed.is_dense)
-        set_cloud_data(msg, packed.data)
-        return msg
+                                        label=label, height=h, out=data)
+        message[-1] = packed.is_dense
+        return message
 
     def segment_bytes(self, header, res: SegmentResult, conf, iou,
                       drift: DomainVerdict | None = None) -> bytes:

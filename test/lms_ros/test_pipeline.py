@@ -356,10 +356,18 @@ def test_processor_outputs(frames, models):
     np.testing.assert_array_equal(pconf, want)
     in_kept = (seg >= 0) & np.isin(seg, res.kept_ids)
     assert np.isfinite(pconf[in_kept]).all() and np.isnan(pconf[~in_kept]).all()
-    # output/segments: every segment in id order; published as bytes that are this message
-    sq = out.segments
+    # published as the bytes of a PointCloud2 (what rclpy reads of them), not dense (a NaN)
     from lidar_quality_msgs.msg import SegmentQualityArray
     from rclpy.serialization import deserialize_message
+    from sensor_msgs.msg import PointCloud2
+    rm = deserialize_message(out.points_cdr.tobytes(), PointCloud2)
+    assert rm.header == msg.header and not rm.is_dense and not rm.is_bigendian
+    assert (rm.height, rm.width, rm.point_step, rm.row_step) == (1, len(xyz), 26, 26 * len(xyz))
+    assert [(fl.name, fl.offset, fl.datatype, fl.count) for fl in rm.fields] == [
+        (fl.name, fl.offset, fl.datatype, fl.count) for fl in pc.fields]
+    assert bytes(rm.data) == pc.data.tobytes()
+    # output/segments: every segment in id order; published as bytes that are this message
+    sq = out.segments
     got = deserialize_message(out.segments_cdr, SegmentQualityArray)
     floats = ("drift_score", "confidence", "predicted_iou")   # NaN != NaN: apart
     for a, b in ((got, sq), *zip(got.segments, sq.segments)):

@@ -19,7 +19,7 @@ from numba import njit, types
 from lidar_quality_core.kernel_types import array_in as _in
 from lidar_quality_core.pointcloud import PackedCloud, cloud_layout, new_cloud_data
 
-__all__ = ["RESULT_LAYOUT", "pack_point_results", "segment_table"]
+__all__ = ["RESULT_LAYOUT", "result_layout", "pack_point_results", "segment_table"]
 
 #: The records (name, dtype, count), in order.
 RESULT_LAYOUT = (("x", np.float32, 1), ("y", np.float32, 1), ("z", np.float32, 1),
@@ -72,14 +72,22 @@ def segment_table(per_segment) -> np.ndarray:
     return t
 
 
+def result_layout() -> tuple[np.dtype, list]:
+    """``(record dtype, fields)`` of the :data:`RESULT_LAYOUT` records as
+    :func:`pack_point_results` writes them (native byte order; ``pointcloud.cloud_layout``)."""
+    return cloud_layout(RESULT_LAYOUT, sys.byteorder == "big")
+
+
 def pack_point_results(xyz, point_class, point_segment, confidence, predicted_iou,
-                       label=None, height: int = 1) -> PackedCloud:
+                       label=None, height: int = 1, out=None) -> PackedCloud:
     """The :data:`RESULT_LAYOUT` records of N points, as ``pointcloud.pack_cloud`` packs
     them (native byte order). ``xyz`` (N, 3) float32; ``point_class`` (N,) the label as a
     class index, unless ``label`` (N,) uint16 is given; ``point_segment`` (N,) int32, -1
     for none; ``confidence`` / ``predicted_iou`` one value per segment (cast to float32,
     NaN for points without a segment). ``height``: rows of an organized cloud (N a
-    multiple of it)."""
+    multiple of it). ``out``: a writable uint8 array of N records' bytes to write them
+    into (e.g. the data of ``cloud_cdr.serialized_cloud``), the ``data`` returned; by
+    default a new ``array.array``."""
     xyz = np.asarray(xyz, dtype=np.float32)
     n = len(xyz)
     if n % max(height, 1):
@@ -96,8 +104,14 @@ def pack_point_results(xyz, point_class, point_segment, confidence, predicted_io
     if n and point_segment.max() >= len(conf) - 1:
         raise ValueError(f"segment {point_segment.max()} of {len(conf) - 1} segments")
     big = sys.byteorder == "big"   # the kernel writes native values
-    dtype, fields = cloud_layout(RESULT_LAYOUT, big)
-    data = new_cloud_data(n * dtype.itemsize)
+    dtype, fields = result_layout()
+    if out is None:
+        data = new_cloud_data(n * dtype.itemsize)
+    elif (not isinstance(out, np.ndarray) or out.dtype != np.uint8 or out.ndim != 1
+          or len(out) != n * dtype.itemsize or not out.flags.writeable):
+        raise ValueError(f"out must be a writable uint8 array of {n * dtype.itemsize} bytes")
+    else:
+        data = out
     dense = True
     if n:
         rec = np.frombuffer(data, dtype)

@@ -113,3 +113,18 @@ def test_decodes_as_a_cloud():
     arr = cloud_to_structured(msg)
     assert arr.shape == (4, 16)
     np.testing.assert_array_equal(arr["segment"].reshape(-1), ps)
+
+
+def test_written_into_a_given_buffer_as_into_a_new_one():
+    xyz, pc, ps, conf, iou = frame(n=300, ns=20, seed=5)
+    want = pack_point_results(xyz, pc, ps, conf, iou)
+    buf = np.full(300 * 26 + 7, 0xAB, np.uint8)     # a message around the records
+    out = buf[3:-4]
+    got = pack_point_results(xyz, pc, ps, conf, iou, out=out)
+    assert got.data is out and bytes(out) == bytes(want.data)
+    assert (got.fields, got.point_step, got.is_dense) == (want.fields, 26, want.is_dense)
+    assert (buf[:3] == 0xAB).all() and (buf[-4:] == 0xAB).all()   # nothing written outside
+    for bad in (np.empty(300 * 26 - 1, np.uint8), np.empty(300 * 26, np.int8),
+                np.frombuffer(bytes(300 * 26), np.uint8)):             # short, typed, read-only
+        with pytest.raises(ValueError, match="writable uint8"):
+            pack_point_results(xyz, pc, ps, conf, iou, out=bad)
