@@ -8,6 +8,7 @@ from std_msgs.msg import Header
 
 from lidar_quality_core.pointcloud import create_xyz_cloud
 from lidar_quality_ros import rcl_api
+from lidar_quality_ros import serialized_publish as sp
 from lidar_quality_ros.serialized_publish import is_serialized, publish_serialized
 
 
@@ -19,14 +20,30 @@ def _cloud(sec: int, n: int = 3000, seed: int = 0) -> PointCloud2:
                             rng.random(n).astype(np.float32))
 
 
-@pytest.fixture
-def pub_and_received(ros):
-    """(publisher, collector of the messages a subscriber in the same graph receives)."""
+@pytest.fixture(params=["from the buffer", "through rclpy"])
+def pub_and_received(ros, request, monkeypatch):
+    """(publisher, collector of the messages a subscriber in the same graph receives), for
+    messages published from their buffer (every size) or by rclpy (below MIN_BYTES)."""
     assert rcl_api.load() is not None, rcl_api.why_not()  # rclpy is here, so rcl is
+    monkeypatch.setattr(sp, "MIN_BYTES", 0 if request.param == "from the buffer" else 1 << 40)
     got = ros.collector(PointCloud2, "published_raw")
     pub = ros.publisher(PointCloud2, "published_raw")
     assert ros.wait_for_match(pub)
     return pub, got
+
+
+def test_large_messages_go_from_their_buffer_small_ones_through_rclpy(ros):
+    got = ros.collector(PointCloud2, "published_raw")
+    pub = ros.publisher(PointCloud2, "published_raw")
+    assert ros.wait_for_match(pub)
+    through_rclpy = []
+    rclpy_publish = pub.publish
+    pub.publish = lambda m: (through_rclpy.append(len(m)), rclpy_publish(m))
+    small, large = _cloud(1, n=1000), _cloud(2, n=sp.MIN_BYTES // 16 + 1)
+    for m in (small, large):
+        publish_serialized(pub, serialize_message(m))
+    assert got.wait_for(2, timeout=10.0) and got.messages == [small, large]
+    assert through_rclpy == [len(serialize_message(small))]
 
 
 def test_every_bytes_like_arrives_as_the_message(pub_and_received):
