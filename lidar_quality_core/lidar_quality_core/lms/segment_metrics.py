@@ -192,6 +192,26 @@ def dispersion(probs: np.ndarray, sums: tuple[np.ndarray, np.ndarray] | None = N
     return cls, E, D, V
 
 
+_NO_RUN = np.zeros(0, np.float32)
+_NO_RUN.flags.writeable = False
+
+
+def _record_run(probs: np.ndarray) -> tuple[np.ndarray, int]:
+    """``(run, step)`` for ``metric_kernels.region_sums``: float32 probabilities (N, n)
+    whose classes lie together, rows a multiple of 4 bytes apart (a message's records, a
+    row-major array) as one read-only flat view from the first probability to the last,
+    point i's at ``run[i * step:i * step + n]``; else an empty run (the kernel reads
+    ``probs`` itself)."""
+    N, n = probs.shape
+    s0, s1 = probs.strides
+    if not (N and n and probs.dtype == np.float32 and probs.flags.aligned
+            and s1 == 4 and s0 > 0 and s0 % 4 == 0):
+        return _NO_RUN, 0
+    run = np.lib.stride_tricks.as_strided(probs, shape=((N - 1) * (s0 // 4) + n,),
+                                          strides=(4,), writeable=False)
+    return run, s0 // 4
+
+
 # -- result ------------------------------------------------------------------------------
 
 
@@ -346,8 +366,10 @@ def compute_segments(xyz, probs, cfg: RangeImageConfig, ring=None, intensity=Non
     psum = np.zeros((nb, n))
     SP_rid = np.zeros(nb, np.int64)                              # projected pixels
     cnt = np.zeros(nb, np.int64)                                 # all pixels
+    rows, row_step = _record_run(probs)
     _k.region_sums(idx, source, _i32(seg), np.ascontiguousarray(inn, bool),
-                   n_seg, E, D, V, *cols5, probs, _BLOCK, sums, psum, SP_rid, cnt)
+                   n_seg, E, D, V, *cols5, probs, rows, row_step, _BLOCK, sums, psum, SP_rid,
+                   cnt)
     SP = SP_rid[:n_seg] + SP_rid[n_seg:]
     S_bd, S_in = cnt[:n_seg], cnt[n_seg:]
     S = S_bd + S_in

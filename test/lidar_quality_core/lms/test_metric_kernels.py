@@ -7,7 +7,7 @@ from float32_logs import reference_log
 from scipy.sparse import csc_matrix
 
 from lidar_quality_core.lms import metric_kernels as mk
-from lidar_quality_core.lms.segment_metrics import _BLOCK, dispersion
+from lidar_quality_core.lms.segment_metrics import _BLOCK, _record_run, dispersion
 
 
 # -- references --------------------------------------------------------------------------
@@ -285,16 +285,31 @@ def measures(rng, N, dtype):
     return cols
 
 
-def run_region_sums(index, source, seg, interior, n_seg, cols, probs, block):
+def run_region_sums(index, source, seg, interior, n_seg, cols, probs, block, run=False):
+    """The kernel on ``probs`` as they are, or (``run``) read as a flat run of records
+    (segment_metrics._record_run: the node's message view)."""
     nb = 2 * n_seg
     sums = np.zeros((nb, 16))
     psum = np.zeros((nb, probs.shape[1]))
     sp = np.zeros(nb, np.int64)
     cnt = np.zeros(nb, np.int64)
+    rows, step = _record_run(probs) if run else (np.zeros(0, np.float32), 0)
+    assert len(rows) or not run
     with np.errstate(all="ignore"):
-        mk.region_sums(index, source, seg, interior, n_seg, *cols, probs, block,
+        mk.region_sums(index, source, seg, interior, n_seg, *cols, probs, rows, step, block,
                        sums, psum, sp, cnt)
     return sums, psum, sp, cnt
+
+
+def in_records(probs, before=4, after=3):
+    """``probs`` (N, n) as the read-only view of a message's records: float32 fields
+    before and after them, other values there."""
+    N, n = probs.shape
+    rec = np.full((N, before + n + after), np.float32(-7.5))
+    rec[:, before:before + n] = probs
+    view = rec[:, before:before + n]
+    view.flags.writeable = False
+    return view
 
 
 @pytest.mark.parametrize("seed", range(6))
@@ -314,9 +329,11 @@ def test_region_sums_match_the_sparse_products(seed):
         for block in (_BLOCK, 7, 1):
             with np.errstate(all="ignore"):
                 want = ref_region_sums(index, source, seg, interior, n_seg, G, probs, block)
-            for p in (probs, class_major(probs)):
+            for p, run in ((probs, False), (class_major(probs), False),
+                           (in_records(probs), False), (in_records(probs), True),
+                           (probs, True)):
                 got = run_region_sums(index, source, seg, interior, n_seg,
-                                      [E, D, V] + cols[3:], p, block)
+                                      [E, D, V] + cols[3:], p, block, run)
                 for g, w in zip(got, want):
                     np.testing.assert_array_equal(g, w)
 
@@ -333,8 +350,8 @@ def test_region_sums_keep_the_order_of_the_blocks():
     psums = []
     for block in (_BLOCK, 100):
         want = ref_region_sums(index, source, seg, interior, n_seg, G, probs, block)
-        for p in (probs, class_major(probs)):
-            got = run_region_sums(index, source, seg, interior, n_seg, cols, p, block)
+        for p, run in ((probs, False), (class_major(probs), False), (in_records(probs), True)):
+            got = run_region_sums(index, source, seg, interior, n_seg, cols, p, block, run)
             for g, w in zip(got, want):
                 np.testing.assert_array_equal(g, w)
         psums.append(want[1])

@@ -374,3 +374,21 @@ def test_simulated_frame_with_perfect_probabilities():
     # the ring and the beam elevations give the same segments here
     res2 = compute_segments(f.xyz, probs, cfg, intensity=f.intensity)
     assert abs(res2.n_segments - res.n_segments) <= 0.02 * res.n_segments
+
+
+def test_record_run_reads_records_and_leaves_other_layouts_to_the_view():
+    from lidar_quality_core.lms.segment_metrics import _record_run
+    rng = np.random.default_rng(0)
+    rec = rng.random((50, 9)).astype(np.float32)
+    view = rec[:, 3:7]                          # 4 classes inside 9-float records
+    run, step = _record_run(view)
+    assert step == 9 and not run.flags.writeable and np.shares_memory(run, rec)
+    assert len(run) == 49 * 9 + 4               # ends at the last probability
+    got = np.stack([run[i * step:i * step + 4] for i in range(50)])
+    np.testing.assert_array_equal(got, view)
+    # class-major, float64, a byte-misaligned view, an empty array: no run
+    bytes_ = np.zeros(50 * 36 + 1, np.uint8)
+    odd = np.ndarray((50, 4), np.float32, buffer=bytes_, offset=1, strides=(36, 4))
+    for other in (np.ascontiguousarray(view.T).T, view.astype(np.float64), odd,
+                  view[:0]):
+        assert len(_record_run(other)[0]) == 0
