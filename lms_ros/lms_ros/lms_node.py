@@ -38,8 +38,9 @@ parameters, loads the models (refusing to start when they are missing or do not 
 class map), subscribes, calls the processor and publishes. Clouds are taken as serialized
 bytes and read in place (``lidar_quality_core.cloud_cdr``: the points a view of the
 received bytes; bytes that are no little-endian PointCloud2 are dropped and counted as
-``undecodable_input``); ``output/points`` is written as its serialized bytes and published
-from them (``cloud_cdr.serialized_cloud``, ``lidar_quality_ros.serialized_publish``). A cloud that cannot be decoded
+``undecodable_input``); ``output/points`` is written as its serialized bytes and
+published from them (``cloud_cdr.serialized_cloud``,
+``lidar_quality_ros.serialized_publish``). A cloud that cannot be decoded
 (missing field, wrong type, point counts that differ) drops the frame (counted as
 ``malformed_cloud``); renormalized or unusable probabilities raise throttled warnings,
 the frame is processed, as is a cloud without an intensity field (the intensity metrics
