@@ -26,6 +26,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .detection_cdr import CdrError, read_string
+from .quality_array_cdr import cdr_string, pad
 
 __all__ = ["CloudField", "DecodedCloud", "decode_point_cloud", "serialized_cloud"]
 
@@ -133,28 +134,20 @@ def serialized_cloud(header, height: int, width: int, fields, is_bigendian: bool
     ``header``: stamp and frame_id as a std_msgs/Header has them; ``fields``: (name,
     offset, datatype, count) tuples."""
     out = bytearray(b"\x00\x01\x00\x00")
-
-    def align(k: int) -> None:
-        out.extend(bytes(-(len(out) - 4) % k))
-
-    def string(text: str) -> None:
-        b = text.encode("utf-8") + b"\0"
-        align(4)
-        out.extend(_UINTS[1].pack(len(b)) + b)
-
     out += _STAMP.pack(header.stamp.sec, header.stamp.nanosec)
-    string(header.frame_id)
-    align(4)
+    out += cdr_string(header.frame_id)
+    pad(out, 4)
     out += _UINTS[3].pack(height, width, len(fields))
     for name, offset, datatype, count in fields:
-        string(name)
-        align(4)
+        pad(out, 4)
+        out += cdr_string(name)
+        pad(out, 4)
         out += _UINTS[1].pack(offset) + bytes((datatype,))
-        align(4)
+        pad(out, 4)
         out += _UINTS[1].pack(count)
     out += bytes((1 if is_bigendian else 0,))
     n_data = height * width * point_step
-    align(4)
+    pad(out, 4)
     out += _UINTS[3].pack(point_step, point_step * width, n_data)
     message = np.empty(len(out) + n_data + 1, np.uint8)
     message[:len(out)] = np.frombuffer(out, np.uint8)

@@ -38,18 +38,20 @@ class _Message(ctypes.Structure):
                 ("buffer_capacity", ctypes.c_size_t), ("allocator", rcl_api.Allocator)]
 
 
-_publish = None
+_call = None
 
 
-def _publisher_function():
-    """rcl_publish_serialized_message taking a :class:`_Message`, or None (rcl_api)."""
-    global _publish
-    if _publish is None and rcl_api.load() is not None:
+def _publisher_call():
+    """``(rcl_publish_serialized_message taking a _Message, the default allocator)``, made
+    once (the allocator is never used: rcl reads the buffer and copies it), or None where
+    rcl_api cannot load."""
+    global _call
+    api = rcl_api.load()
+    if _call is None and api is not None:
         fn = ctypes.CFUNCTYPE(ctypes.c_int, ctypes.c_void_p, ctypes.POINTER(_Message),
-                              ctypes.c_void_p)(ctypes.cast(rcl_api.load().publish,
-                                                           ctypes.c_void_p).value)
-        _publish = fn
-    return _publish
+                              ctypes.c_void_p)(ctypes.cast(api.publish, ctypes.c_void_p).value)
+        _call = (fn, api.allocator())
+    return _call
 
 
 def is_serialized(msg) -> bool:
@@ -68,24 +70,15 @@ def publish_serialized(publisher, data) -> None:
     if view.dtype != np.uint8 or view.ndim != 1 or not view.flags.c_contiguous:
         raise TypeError(f"serialized message must be contiguous bytes, got {view.dtype} "
                         f"{view.shape}")
-    fn = _publisher_function() if len(view) >= MIN_BYTES else None
-    if fn is None:
+    call = _publisher_call() if len(view) >= MIN_BYTES else None
+    if call is None:
         publisher.publish(data if isinstance(data, bytes) else view.tobytes())
         return
-    msg = _Message(view.__array_interface__["data"][0], len(view), len(view), _allocator())
+    fn, allocator = call
+    msg = _Message(view.__array_interface__["data"][0], len(view), len(view), allocator)
     handle = publisher.handle
     with handle:
         ret = fn(handle.pointer, msg, None)
     if ret != 0:
         raise rcl_api.rcl_error(f"rcl_publish_serialized_message failed ({ret})")
 
-
-_default_allocator = None
-
-
-def _allocator():
-    # never used (rcl reads the buffer and copies it), but a valid one, made once
-    global _default_allocator
-    if _default_allocator is None:
-        _default_allocator = rcl_api.load().allocator()
-    return _default_allocator

@@ -90,7 +90,6 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
-import sys
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -903,9 +902,8 @@ class LmsProcessor:
                                              packed.point_step)
             data[:] = np.frombuffer(packed.data, np.uint8)
         else:   # the records in one pass (point_results), into the message
-            dtype, fields = result_layout()
-            message, data = serialized_cloud(header, h, w, fields, sys.byteorder == "big",
-                                             dtype.itemsize)
+            dtype, fields, big = result_layout()
+            message, data = serialized_cloud(header, h, w, fields, big, dtype.itemsize)
             packed = pack_point_results(inp.xyz, res.point_class, res.point_segment, conf, iou,
                                         label=label, height=h, out=data)
         message[-1] = packed.is_dense

@@ -72,10 +72,11 @@ def segment_table(per_segment) -> np.ndarray:
     return t
 
 
-def result_layout() -> tuple[np.dtype, list]:
-    """``(record dtype, fields)`` of the :data:`RESULT_LAYOUT` records as
+def result_layout() -> tuple[np.dtype, list, bool]:
+    """``(record dtype, fields, is_bigendian)`` of the :data:`RESULT_LAYOUT` records as
     :func:`pack_point_results` writes them (native byte order; ``pointcloud.cloud_layout``)."""
-    return cloud_layout(RESULT_LAYOUT, sys.byteorder == "big")
+    big = sys.byteorder == "big"   # the kernel writes native values
+    return (*cloud_layout(RESULT_LAYOUT, big), big)
 
 
 def pack_point_results(xyz, point_class, point_segment, confidence, predicted_iou,
@@ -103,8 +104,7 @@ def pack_point_results(xyz, point_class, point_segment, confidence, predicted_io
         raise ValueError("confidence and predicted_iou must have one value per segment")
     if n and point_segment.max() >= len(conf) - 1:
         raise ValueError(f"segment {point_segment.max()} of {len(conf) - 1} segments")
-    big = sys.byteorder == "big"   # the kernel writes native values
-    dtype, fields = result_layout()
+    dtype, fields, big = result_layout()
     if out is None:
         data = new_cloud_data(n * dtype.itemsize)
     elif (not isinstance(out, np.ndarray) or out.dtype != np.uint8 or out.ndim != 1
