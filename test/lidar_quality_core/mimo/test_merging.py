@@ -314,3 +314,48 @@ def test_sklearn_option_gives_the_same_merge():
         b = merge_heads(heads, MergeConfig(voting=voting, dbscan="sklearn"))
         np.testing.assert_array_equal(a.member_cluster, b.member_cluster)
         np.testing.assert_allclose(a.boxes, b.boxes)
+
+
+@pytest.mark.parametrize("seed", range(5))
+@pytest.mark.parametrize("temperature", [1.0, 1.7])
+def test_merged_clusters_equal_their_numpy_definition(seed, temperature):
+    # the merge runs as one compiled pass: per cluster the members ordered by confidence
+    # (ties: lowest pooled row, as np.lexsort), mean box with the top member's yaw and
+    # softmax(mean logits / T), checked against numpy on random frames of three heads
+    rng = np.random.default_rng(seed)
+    centres = rng.uniform(-40, 40, (25, 2))
+    heads = []
+    for _ in range(3):
+        n = rng.integers(15, 25)
+        pick = rng.choice(len(centres), n, replace=False)
+        b = np.column_stack([centres[pick] + rng.normal(0, 0.2, (n, 2)), rng.normal(-1, 0.1, n),
+                             rng.uniform(3.5, 4.5, n), rng.uniform(1.6, 2.0, n),
+                             rng.uniform(1.4, 1.7, n), rng.uniform(-np.pi, np.pi, n)])
+        logits = rng.normal(0, 2, (n, 5))
+        logits[rng.random(n) < 0.2] = logits[0]   # equal confidences: ties
+        heads.append(HeadDetections(b, logits, rng.uniform(0, 0.1, (n, 7))))
+    r = merge_heads(heads, MergeConfig(temperature=temperature))
+    boxes = np.concatenate([h.boxes for h in heads])
+    logits = np.concatenate([h.class_scores for h in heads])
+    z = logits / temperature
+    probs = np.exp(z - z.max(axis=1, keepdims=True))
+    probs /= probs.sum(axis=1, keepdims=True)
+    conf = probs[:, 1:].max(axis=1)
+    lab = r.member_cluster
+    assert len(r) > 5 and (lab >= 0).sum() > len(r)
+    keep = np.flatnonzero(lab >= 0)
+    order = keep[np.lexsort((-conf[keep], lab[keep]))]
+    g = lab[order]
+    starts = np.flatnonzero(np.r_[True, g[1:] != g[:-1]])
+    counts = np.diff(starts, append=len(order))
+    want = np.add.reduceat(boxes[order], starts, axis=0) / counts[:, None]
+    want[:, 6] = boxes[order[starts], 6]
+    mz = np.add.reduceat(logits[order], starts, axis=0) / counts[:, None] / temperature
+    cp = np.exp(mz - mz.max(axis=1, keepdims=True))
+    cp /= cp.sum(axis=1, keepdims=True)
+    np.testing.assert_array_equal(r.top_member, order[starts])
+    np.testing.assert_allclose(r.boxes, want, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(r.class_probs, cp, rtol=1e-12, atol=1e-15)
+    np.testing.assert_array_equal(r.labels, 1 + np.argmax(cp[:, 1:], axis=1))
+    np.testing.assert_allclose(r.scores, cp[np.arange(len(r)), r.labels], rtol=1e-12)
+    np.testing.assert_array_equal(r.stats.cluster_size, counts)

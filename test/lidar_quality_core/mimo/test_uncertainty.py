@@ -4,7 +4,8 @@ import math
 import numpy as np
 import pytest
 
-from lidar_quality_core.mimo.uncertainty import (cluster_statistics, entropy_bits, group_mean,
+from lidar_quality_core.mimo.uncertainty import (classification_statistics, cluster_statistics,
+                                                 entropy_bits, group_mean,
                                                  regression_statistics, wrap_angle)
 
 
@@ -137,3 +138,37 @@ def test_regression_statistics_rejects_unknown_option():
     with pytest.raises(ValueError, match="yaw_variance"):
         regression_statistics(np.zeros((1, 7)), np.zeros((1, 7)), np.array([0]), np.array([1]),
                               np.array([0]), yaw_variance="mean")
+
+
+@pytest.mark.parametrize("seed", range(6))
+@pytest.mark.parametrize("yaw_deviation", ["wrapped", "raw"])
+@pytest.mark.parametrize("yaw_variance", ["top", "mixture"])
+def test_compiled_statistics_equal_the_numpy_definitions(seed, yaw_deviation, yaw_variance):
+    # cluster_statistics runs one compiled pass (group_statistics); the numpy forms of the
+    # same definitions are the reference: groups of 1-5 members, ~100 m coordinates, yaws
+    # across +-pi, unknown (NaN) variances on some members, probabilities with zeros
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(1, 6, size=rng.integers(1, 30))
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    m = int(counts.sum())
+    boxes = np.column_stack([rng.normal(100.0, 30.0, (m, 3)), rng.uniform(0.5, 5.0, (m, 3)),
+                             rng.uniform(-np.pi, np.pi, m)])
+    var = rng.uniform(0.0, 1.0, (m, 7))
+    var[rng.random(m) < 0.2] = np.nan
+    probs = rng.dirichlet(np.ones(4), m)
+    probs[rng.random((m, 4)) < 0.1] = 0.0
+    top = starts + rng.integers(0, counts)
+    s = cluster_statistics(probs, boxes, var, starts, top, yaw_deviation=yaw_deviation,
+                           yaw_variance=yaw_variance)
+    se, ae, mi = classification_statistics(probs, starts, counts)
+    epi, ale, pred = regression_statistics(boxes, var, starts, counts, top,
+                                           yaw_deviation=yaw_deviation,
+                                           yaw_variance=yaw_variance)
+    np.testing.assert_array_equal(s.cluster_size, counts)
+    for got, want in [(s.shannon_entropy, se), (s.aleatoric_entropy, ae),
+                      (s.mutual_information, mi), (s.epistemic_variance, epi),
+                      (s.aleatoric_variance, ale), (s.predictive_variance, pred),
+                      (s.epistemic_total_variance, epi.sum(axis=1)),
+                      (s.aleatoric_total_variance, ale.sum(axis=1))]:
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=1e-12)
+    assert np.isnan(s.aleatoric_total_variance).any() == np.isnan(ale).any()
