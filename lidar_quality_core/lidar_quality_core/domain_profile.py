@@ -379,25 +379,28 @@ class DriftMonitor:
             # quantities of a frame's rows: one matrix
             groups = [(names, np.stack([frame[k] for k in names], axis=1) if n
                        else np.zeros((0, len(names)))) for n, names in by_len.items()]
+            for names, V in groups:
+                _add_counts(np.require(V, np.float64, "CW"),
+                            np.array([self._index[k] for k in names], np.int64),
+                            self._edges, self._sorted_edges, counts)
         else:
-            groups = []
-            for names, X in values:
-                X = np.asarray(X, np.float64).reshape(-1, len(names))
-                cols = [j for j, k in enumerate(names) if k in self._index]
-                groups.append(([names[j] for j in cols] if len(cols) < len(names) else names,
-                               X if len(cols) == X.shape[1] else X[:, cols]))
-            # a node's frames share their layout: the name -> column map is built once
-            layout = tuple(tuple(names) for names, _ in groups)
-            where = self._layouts.get(layout)
-            if where is None:
+            # a node's frames share their layout: which columns are profiled, their rows
+            # in the profile and the name -> column map are worked out once per layout
+            layout = tuple(tuple(names) for names, _ in values)
+            known = self._layouts.get(layout)
+            if known is None:
                 if len(self._layouts) > 8:
                     self._layouts.clear()
-                where = self._layouts[layout] = _GroupValues.where(groups)
+                known = self._layouts[layout] = self._layout(layout)
+            selections, where = known
+            groups = []
+            for (names, X), (kept, cols, _) in zip(values, selections):
+                X = np.asarray(X, np.float64).reshape(-1, len(names))
+                groups.append((kept, X if cols is None else X[:, cols]))
             frame = _GroupValues(groups, where)
-        for names, V in groups:
-            _add_counts(np.require(V, np.float64, "CW"),
-                        np.array([self._index[k] for k in names], np.int64),
-                        self._edges, self._sorted_edges, counts)
+            for (_, V), (_, _, rows) in zip(groups, selections):
+                _add_counts(np.require(V, np.float64, "CW"), rows, self._edges,
+                            self._sorted_edges, counts)
         self._counts.append(counts)
         self._values.append(frame)
         self._total += counts
@@ -409,13 +412,26 @@ class DriftMonitor:
             _window_scores(self._total, self._mass, self._train_n, self._spread, self._empty,
                            float(self.min_values), scores)
         scored = np.flatnonzero(np.isfinite(scores))
+        # only the first few of the ranking are reported (top)
         ranked = [(self._names[i], float(scores[i]))
-                  for i in scored[np.argsort(-scores[scored], kind="stable")].tolist()]
+                  for i in scored[np.argsort(-scores[scored], kind="stable")[:max(self.top, 1)]
+                                  ].tolist()]
         score = ranked[0][1] if ranked else 0.0
         level = ERROR if score >= self.error else WARN if score >= self.warn else OK
         drifted = [(k, round(v, 4)) for k, v in ranked[:self.top] if v >= self.warn]
         text = self.words(drifted) if explain else ""
         return DriftReport(float(score), level, drifted, text, len(self._counts), len(scored))
+
+    def _layout(self, layout) -> tuple[list, dict]:
+        """Per ``(names, X)`` group of a layout: ``(the profiled names, their columns or
+        None for all, their rows in the profile)``, and the name -> column map."""
+        selections = []
+        for names in layout:
+            cols = [j for j, k in enumerate(names) if k in self._index]
+            kept = tuple(names[j] for j in cols)
+            selections.append((kept, None if len(cols) == len(names) else np.array(cols),
+                               np.array([self._index[k] for k in kept], np.int64)))
+        return selections, _GroupValues.where([(kept, None) for kept, _, _ in selections])
 
     def words(self, drifted) -> str:
         """The ``drifted`` quantities (``(name, PSI)`` pairs) in words over the current
