@@ -57,8 +57,8 @@ from lidar_quality_core.autoware_objects import (AutowareOutput, class_map_param
 from lidar_quality_core.box_geometry import as_boxes, inbox_point_stats
 from lidar_quality_core.box_variance_cdr import DecodedVariances
 from lidar_quality_core.cluster_uncertainty_cdr import encode_cluster_uncertainty_array
-from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
-                                      detections_to_arrays, tilt_issue)
+from lidar_quality_core.boxes import (TILT_TOLERANCE_DEG, DetectionArrays,
+                                      arrays_to_detections, detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
 from lidar_quality_core.domain_profile import DomainCheck, DomainVerdict, DriftParameters
 from lidar_quality_core.frame import FrameRejected
@@ -70,6 +70,7 @@ from lidar_quality_core.thresholds import (ConfidenceThresholds, class_threshold
                                            range_thresholds_param)
 from lidar_quality_core.transforms import Transform, input_transforms, transform_tolerance_param
 
+from lidar_quality_core.mimo.head_inputs import class_probabilities, ordered_variances
 from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, MergeResult, merge_heads
 from lidar_quality_core.mimo.uncertainty import BOX_PARAMS
 
@@ -206,22 +207,20 @@ def load_models(params: MimoParameters, warn=None) -> MetaModels:
 
 
 # ------------------------------------------------------------------ decoding
+_TILT_PREFILTER_RAD = float(np.radians(TILT_TOLERANCE_DEG)) * (1.0 - 1e-9)
+
 def _class_probabilities(arrays: DetectionArrays, class_names):
-    """``(probs (n, 1 + C) with background column 0, has a known class (n,), all known
-    scores in [0, 1] (n,))`` (module docstring)."""
+    """``(probs (n, 1 + C) with background column 0 and NaN rows for unusable boxes,
+    usable (n,), has a known class (n,), all known scores in [0, 1] (n,), a valid box may
+    be tilted)`` (module docstring; ``head_inputs.class_probabilities``)."""
     n = len(arrays)
     missing = np.full(n, np.nan)
     fg = np.column_stack([arrays.class_scores.get(name, missing) for name in class_names]
                          ) if len(class_names) else np.zeros((n, 0))
-    have = ~np.isnan(fg)
-    known = have.any(axis=1)
-    fg[~have] = 0.0
-    with np.errstate(invalid="ignore"):
-        in_range = ((fg >= 0.0) & (fg <= 1.0)).all(axis=1)
-    probs = np.empty((n, 1 + len(class_names)))
-    probs[:, 1:] = fg
-    probs[:, 0] = np.clip(1.0 - fg.sum(axis=1), 0.0, 1.0)
-    return probs, known, in_range
+    # just under the tolerance: the words (tilt_issue) decide in degrees
+    return class_probabilities(np.asarray(fg, np.float64), np.asarray(arrays.valid, bool),
+                               np.asarray(arrays.roll_pitch, np.float64).reshape(n, 2),
+                               _TILT_PREFILTER_RAD)
 
 
 def _variance_entries(msg) -> tuple[np.ndarray, list, np.ndarray]:
@@ -241,9 +240,16 @@ def _variances(msg, arrays: DetectionArrays, issues: list | None) -> np.ndarray:
     if msg is None:
         return var
     idx, ids, vals = _variance_entries(msg)
+    idx = np.asarray(idx, np.int64)
+    if len(ids) == n and ids == arrays.ids:   # the usual case: entry k is detection k
+        ordered, bad, in_order = ordered_variances(np.asarray(vals, np.float64), idx)
+        if in_order:
+            if bad:
+                _note(issues, f"{bad} variance entr{'y' if bad == 1 else 'ies'} ignored "
+                              "(index / id mismatch, negative or non-finite)")
+            return ordered
     # an entry names its detection by index, and by id unless the id is empty (compared
     # as object arrays: a Python loop over the entries cost 0.07 ms a head)
-    idx = np.asarray(idx, np.int64)
     match = (idx >= 0) & (idx < n)
     in_order = len(ids) == n and ids == arrays.ids and bool((idx == np.arange(n)).all())
     if len(ids) and not in_order:  # (in order, the usual case: every id matches)
@@ -300,17 +306,16 @@ def head_detections(det_msg, variance_msg, settings: MimoSettings = MimoSettings
         arrays = replace(arrays, boxes=boxes)
         if tilted:
             _note(issues, tilted)
-    probs, known, in_range = _class_probabilities(arrays, settings.class_names)
-    usable = arrays.valid & known & in_range
+    probs, usable, known, in_range, maybe_tilted = _class_probabilities(arrays,
+                                                                        settings.class_names)
     if not usable.all():
-        probs[~usable] = np.nan
         if issues is not None:
             bad = np.flatnonzero(~usable)
             why = [arrays.reasons[i] or ("no hypothesis of a known class" if not known[i]
                                          else "class score outside [0, 1]") for i in bad[:5]]
             issues.append(f"{len(bad)} unusable box(es): " + ", ".join(
                 f"#{i}: {w}" for i, w in zip(bad, why)))
-    tilt = tilt_issue(arrays)
+    tilt = tilt_issue(arrays) if maybe_tilted else None
     if tilt:
         _note(issues, tilt)
     var = _variances(variance_msg, arrays, issues)
