@@ -329,6 +329,19 @@ class StampSynchronizer:
         others = [j for j in range(n) if j != i]
         if any(len(self._queues[j]) == 0 for j in others):
             return None
+        if self.slop_ns == 0:
+            # equal stamps only: the set below reduces to each other input's first
+            # (earliest-arrived) message at t; found by bisection instead of the ~15
+            # numpy calls below (a node's set-completing arrival, every frame)
+            chosen = [0] * n
+            chosen[i] = pivot_pos
+            for j in others:
+                stamps = self._queues[j].stamps
+                pos = bisect.bisect_left(stamps, t)
+                if pos == len(stamps) or stamps[pos] != t:
+                    return None
+                chosen[j] = pos
+            return chosen
         arrays = [np.asarray(self._queues[j].stamps, dtype=np.int64) for j in others]
         # The tightest set's oldest stamp is the pivot or a queued stamp in
         # [t - slop, t]; for each such lower bound every other input takes its

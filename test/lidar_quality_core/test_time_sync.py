@@ -207,6 +207,12 @@ def test_approximate_zero_slop_equals_exact():
     b = StampSynchronizer(3, mode="approximate", slop_ns=0, queue_size=5)
     assert feed(a, events) == feed(b, events)
     assert a.stats() == b.stats()
+    # equal stamps take a bisection path; a slop below the stamps' step (3 ns) makes the
+    # general search match the same sets
+    c = StampSynchronizer(3, mode="approximate", slop_ns=1, queue_size=5)
+    a = StampSynchronizer(3, mode="exact", queue_size=5)
+    assert feed(a, events) == feed(c, events)
+    assert a.stats() == c.stats()
 
 
 # -- queues, late, reset --------------------------------------------------------------
