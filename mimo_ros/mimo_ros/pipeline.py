@@ -57,8 +57,8 @@ from lidar_quality_core.autoware_objects import (AutowareOutput, class_map_param
 from lidar_quality_core.box_geometry import as_boxes, inbox_point_stats
 from lidar_quality_core.box_variance_cdr import DecodedVariances
 from lidar_quality_core.cluster_uncertainty_cdr import encode_cluster_uncertainty_array
-from lidar_quality_core.boxes import (TILT_TOLERANCE_DEG, DetectionArrays,
-                                      arrays_to_detections, detections_to_arrays, tilt_issue)
+from lidar_quality_core.boxes import (DetectionArrays, arrays_to_detections,
+                                      detections_to_arrays, tilt_issue)
 from lidar_quality_core.detection_cdr import encode_detections
 from lidar_quality_core.domain_profile import DomainCheck, DomainVerdict, DriftParameters
 from lidar_quality_core.frame import FrameRejected
@@ -207,20 +207,15 @@ def load_models(params: MimoParameters, warn=None) -> MetaModels:
 
 
 # ------------------------------------------------------------------ decoding
-_TILT_PREFILTER_RAD = float(np.radians(TILT_TOLERANCE_DEG)) * (1.0 - 1e-9)
-
 def _class_probabilities(arrays: DetectionArrays, class_names):
     """``(probs (n, 1 + C) with background column 0 and NaN rows for unusable boxes,
-    usable (n,), has a known class (n,), all known scores in [0, 1] (n,), a valid box may
-    be tilted)`` (module docstring; ``head_inputs.class_probabilities``)."""
+    usable (n,), has a known class (n,), all known scores in [0, 1] (n,))`` (module
+    docstring; ``head_inputs.class_probabilities``)."""
     n = len(arrays)
     missing = np.full(n, np.nan)
     fg = np.column_stack([arrays.class_scores.get(name, missing) for name in class_names]
                          ) if len(class_names) else np.zeros((n, 0))
-    # just under the tolerance: the words (tilt_issue) decide in degrees
-    return class_probabilities(np.asarray(fg, np.float64), np.asarray(arrays.valid, bool),
-                               np.asarray(arrays.roll_pitch, np.float64).reshape(n, 2),
-                               _TILT_PREFILTER_RAD)
+    return class_probabilities(np.asarray(fg, np.float64), np.asarray(arrays.valid, bool))
 
 
 def _variance_entries(msg) -> tuple[np.ndarray, list, np.ndarray]:
@@ -306,8 +301,7 @@ def head_detections(det_msg, variance_msg, settings: MimoSettings = MimoSettings
         arrays = replace(arrays, boxes=boxes)
         if tilted:
             _note(issues, tilted)
-    probs, usable, known, in_range, maybe_tilted = _class_probabilities(arrays,
-                                                                        settings.class_names)
+    probs, usable, known, in_range = _class_probabilities(arrays, settings.class_names)
     if not usable.all():
         if issues is not None:
             bad = np.flatnonzero(~usable)
@@ -315,7 +309,7 @@ def head_detections(det_msg, variance_msg, settings: MimoSettings = MimoSettings
                                          else "class score outside [0, 1]") for i in bad[:5]]
             issues.append(f"{len(bad)} unusable box(es): " + ", ".join(
                 f"#{i}: {w}" for i, w in zip(bad, why)))
-    tilt = tilt_issue(arrays) if maybe_tilted else None
+    tilt = tilt_issue(arrays)
     if tilt:
         _note(issues, tilt)
     var = _variances(variance_msg, arrays, issues)

@@ -130,6 +130,26 @@ def test_tilted_boxes_are_kept_and_reported():
     assert tilt_issue(upright) is None and tilt_issue(detections_to_arrays([])) is None
 
 
+def test_tilt_issue_at_the_tolerance_counts_in_degrees():
+    # tilt_issue checks the radians first (just under the tolerance), then counts in
+    # degrees: a box a rounding step above the tolerance is reported, one at it is not
+    from dataclasses import replace
+    arr = detections_to_arrays(arrays_to_detections(
+        Header(), np.zeros((4, 7)) + [0, 0, 0, 1, 1, 1, 0], ["car"] * 4, [0.5] * 4))
+    at = math.radians(TILT_TOLERANCE_DEG)
+    rp = np.array([[at, 0.0], [0.0, -at], [np.nan, 0.0], [0.0, 0.0]])
+    assert tilt_issue(replace(arr, roll_pitch=rp)) is None
+    up = np.nextafter(np.degrees(at), np.inf)
+    rp[1, 1] = -np.radians(np.nextafter(up, np.inf))
+    assert np.degrees(abs(rp[1, 1])) > TILT_TOLERANCE_DEG
+    assert tilt_issue(replace(arr, roll_pitch=rp)).startswith("1 of 4 boxes")
+    # strided (a view of roll, pitch, yaw) and invalid boxes
+    rpy = np.column_stack([rp, np.zeros(4)])
+    assert tilt_issue(replace(arr, roll_pitch=rpy[:, :2])).startswith("1 of 4 boxes")
+    assert tilt_issue(replace(arr, roll_pitch=rp,
+                              valid=np.array([True, False, True, True]))) is None
+
+
 @given(y=angle)
 def test_yaw_quaternion_inverse(y):
     assert math.isclose(quaternion_to_rpy(yaw_to_quaternion(np.array([y])))[0, 2], y, abs_tol=1e-9)

@@ -20,22 +20,19 @@ _F2A = array_in(types.float64, 2, "A")
 
 
 @njit(types.Tuple((array_out(types.float64, 2), array_out(types.boolean),
-                   array_out(types.boolean), array_out(types.boolean), types.boolean))(
-    _F2A, array_in(types.boolean, 1, "A"), _F2A, types.float64), cache=True, nogil=True)
-def class_probabilities(fg, valid, roll_pitch, tilt_rad):
+                   array_out(types.boolean), array_out(types.boolean)))(
+    _F2A, array_in(types.boolean, 1, "A")), cache=True, nogil=True)
+def class_probabilities(fg, valid):
     """From the heads' foreground class scores ``fg`` (n, C) (NaN: no hypothesis of that
-    class): ``(probs (n, 1 + C), usable, known, in_range, maybe_tilted)``. ``probs``:
+    class): ``(probs (n, 1 + C), usable, known, in_range)``. ``probs``:
     background column 0 = clip(1 - sum of the known scores, 0, 1), absent classes 0, the
     rows of unusable boxes NaN; ``known``: some class of the list is scored; ``in_range``:
-    every known score in [0, 1]; ``usable``: ``valid & known & in_range``;
-    ``maybe_tilted``: a valid box has |roll| or |pitch| above ``tilt_rad`` (the caller then
-    words it with ``boxes.tilt_issue``)."""
+    every known score in [0, 1]; ``usable``: ``valid & known & in_range``."""
     n, n_cls = fg.shape
     probs = np.empty((n, n_cls + 1))
     usable = np.empty(n, np.bool_)
     known = np.empty(n, np.bool_)
     in_range = np.empty(n, np.bool_)
-    tilted = False
     for i in range(n):
         total = 0.0
         have = False
@@ -55,9 +52,7 @@ def class_probabilities(fg, valid, roll_pitch, tilt_rad):
         usable[i] = valid[i] and have and ok
         if not usable[i]:
             probs[i, :] = np.nan
-        if valid[i] and (abs(roll_pitch[i, 0]) > tilt_rad or abs(roll_pitch[i, 1]) > tilt_rad):
-            tilted = True
-    return probs, usable, known, in_range, tilted
+    return probs, usable, known, in_range
 
 
 @njit(types.Tuple((array_out(types.float64, 2), types.int64, types.boolean))(

@@ -29,23 +29,11 @@ def test_class_probabilities_equal_their_numpy_definition(seed):
     odd = rng.random((n, c)) < 0.05
     fg[odd] = rng.choice([-0.2, 1.5, np.inf, -np.inf], odd.sum())
     valid = rng.random(n) > 0.1
-    rp = rng.normal(0.0, 0.005, (n, 2))
-    probs, usable, known, in_range, _ = class_probabilities(fg, valid, rp, 0.1)
+    probs, usable, known, in_range = class_probabilities(fg, valid)
     want = _numpy_probabilities(fg, valid)
     np.testing.assert_array_equal(probs, want[0])
     for got, w in zip((usable, known, in_range), want[1:]):
         np.testing.assert_array_equal(got, w)
-
-
-def test_tilt_prefilter_sees_valid_tilted_boxes_only():
-    fg = np.full((3, 2), 0.4)
-    rp = np.array([[0.0, 0.0], [0.0, -0.3], [0.3, 0.0]])
-    assert class_probabilities(fg, np.array([True, True, False]), rp, 0.1)[4]
-    assert not class_probabilities(fg, np.array([True, False, False]), rp, 0.1)[4]
-    assert not class_probabilities(fg, np.ones(3, bool), np.zeros((3, 2)), 0.1)[4]
-    # strided roll / pitch (a view of the decoder's roll, pitch, yaw) is read as given
-    rpy = np.column_stack([rp, np.zeros(3)])
-    assert class_probabilities(fg, np.ones(3, bool), rpy[:, :2], 0.1)[4]
 
 
 def test_ordered_variances():
