@@ -48,12 +48,22 @@ _PROBS_VIEW = _in(_F32, 2, "A", aligned=False)
 
 @njit(types.void(_PROBS_VIEW, _I64, _out(_F32, 2)), cache=True, nogil=True)
 def transpose_block(probs, b0, out):
-    """``out`` (n, m) = rows ``b0 .. b0 + m - 1`` of ``probs`` (N, n), transposed."""
+    """``out`` (n, m) = rows ``b0 .. b0 + m - 1`` of ``probs`` (N, n), transposed.
+
+    Sixteen rows at a time, class by class: each class's 16 values go to one run of
+    ``out`` (a 120k x 14 frame in 72-byte records: 1.03 -> 0.78 ms; one row at a time
+    scattered every value to another row of ``out``)."""
     n, m = out.shape
-    for j in range(m):
-        row = probs[b0 + j]
+    j = 0
+    while j + 16 <= m:
         for c in range(n):
-            out[c, j] = row[c]
+            for k in range(16):
+                out[c, j + k] = probs[b0 + j + k, c]
+        j += 16
+    for jj in range(j, m):
+        row = probs[b0 + jj]
+        for c in range(n):
+            out[c, jj] = row[c]
 
 
 @njit(types.Tuple((_F32, _BOOL))(_in(_F32, 2), _I64, _I64, _I64, _BOOL, _F32,

@@ -241,12 +241,21 @@ def test_dispersion_blocks_do_not_matter(monkeypatch):
         assert_dispersion_exact(p)
 
 
-def test_transpose_block():
-    rng = np.random.default_rng(1)
-    p = rng.random((300, 7)).astype(np.float32)
-    out = np.empty((7, 50), np.float32)
-    mk.transpose_block(p, 123, out)
-    np.testing.assert_array_equal(out, p[123:173].T)
+@pytest.mark.parametrize("m", [1, 15, 16, 17, 50, 177])
+def test_transpose_block(m):
+    # whole tiles of 16 rows, a remainder, and rows read from a message's records
+    rng = np.random.default_rng(m)
+    p = rng.random((400, 7)).astype(np.float32)
+    records = np.zeros((400, 9), np.float32)
+    records[:, 2:] = p
+    unaligned = np.zeros((400, 9 * 4 + 2), np.uint8)
+    unaligned[:, 2:2 + 7 * 4] = p.view(np.uint8).reshape(400, 28)
+    strided = np.ndarray((400, 7), np.float32, unaligned, offset=2, strides=(38, 4))
+    assert not strided.flags.aligned
+    for src in (p, records[:, 2:], strided):
+        out = np.full((7, m), np.nan, np.float32)
+        mk.transpose_block(src, 123, out)
+        np.testing.assert_array_equal(out, p[123:123 + m].T)
 
 
 # -- sums over regions -------------------------------------------------------------------
