@@ -380,8 +380,7 @@ class DriftMonitor:
             groups = [(names, np.stack([frame[k] for k in names], axis=1) if n
                        else np.zeros((0, len(names)))) for n, names in by_len.items()]
             for names, V in groups:
-                _add_counts(np.require(V, np.float64, "CW"),
-                            np.array([self._index[k] for k in names], np.int64),
+                _add_counts(np.require(V, np.float64, "CW"), self._rows(names),
                             self._edges, self._sorted_edges, counts)
         else:
             # a node's frames share their layout: which columns are profiled, their rows
@@ -430,8 +429,12 @@ class DriftMonitor:
             cols = [j for j, k in enumerate(names) if k in self._index]
             kept = tuple(names[j] for j in cols)
             selections.append((kept, None if len(cols) == len(names) else np.array(cols),
-                               np.array([self._index[k] for k in kept], np.int64)))
+                               self._rows(kept)))
         return selections, _GroupValues.where([(kept, None) for kept, _, _ in selections])
+
+    def _rows(self, names) -> np.ndarray:
+        """The profile's rows of the profiled quantities ``names``."""
+        return np.array([self._index[k] for k in names], np.int64)
 
     def words(self, drifted) -> str:
         """The ``drifted`` quantities (``(name, PSI)`` pairs) in words over the current

@@ -249,32 +249,32 @@ _F2 = array_in(types.float64, 2)
 _F1 = array_in(types.float64)
 
 
-@njit(types.Tuple((array_out(types.int64), array_out(types.int64), array_out(types.float64, 2),
-                   array_out(types.float64, 2), array_out(types.int64), array_out(types.float64),
-                   GROUP_STATISTICS))(_F2, _F2, _F2, _F2, array_in(types.int64), _F1, array_in(types.boolean),
-                            types.float64, types.boolean, types.boolean),
-      cache=True, nogil=True)
+_MERGED_OUT = types.Tuple((array_out(types.int64), array_out(types.int64),
+                           array_out(types.float64, 2), array_out(types.float64, 2),
+                           array_out(types.int64), array_out(types.float64), GROUP_STATISTICS))
+
+
+@njit(_MERGED_OUT(_F2, _F2, _F2, _F2, array_in(types.int64), _F1, array_in(types.boolean),
+                  types.float64, types.boolean, types.boolean), cache=True, nogil=True)
 def _merged(boxes, logits, var, probs, lab, member_score, fg, temperature, wrapped, top_yaw):
     """The merge of the clustered members (``lab`` >= 0) in one compiled pass (module
     doc): ``(order, top, boxes, class_probs, labels, scores, statistics)``; ``order``:
     the members grouped cluster after cluster, highest confidence first (ties: lowest
     row, as np.lexsort), ``top``: each group's first row in ``order``. Sums run member
     after member as numpy's grouped sums did; the numpy chain it replaces was ~40 calls
-    a frame, each far dearer than its arithmetic."""
+    a frame, each far dearer than its arithmetic. At least one member is clustered."""
     keep = np.flatnonzero(lab >= 0)
     by_score = keep[np.argsort(-member_score[keep], kind="mergesort")]
     order = by_score[np.argsort(lab[by_score], kind="mergesort")]
     n = order.shape[0]
+    starts = np.empty(n, np.int64)
+    starts[0] = 0
     n_groups = 1
     for r in range(1, n):
-        n_groups += lab[order[r]] != lab[order[r - 1]]
-    top = np.empty(n_groups, np.int64)
-    top[0] = 0
-    g = 1
-    for r in range(1, n):
         if lab[order[r]] != lab[order[r - 1]]:
-            top[g] = r
-            g += 1
+            starts[n_groups] = r
+            n_groups += 1
+    top = starts[:n_groups].copy()
     gb, gl, gv, gp = boxes[order], logits[order], var[order], probs[order]
     ncls = logits.shape[1]
     merged = np.zeros((n_groups, 7))
