@@ -95,16 +95,12 @@ def _candidate_pairs(a, b, va, vb, same: bool = False):
     return i[order], j[order]
 
 
-def _pair_area(a: np.ndarray, b: np.ndarray, trig=None) -> np.ndarray:
-    """Exact BEV intersection area of row-paired valid boxes ``a[k]``, ``b[k]``.
-
-    ``trig``: optional precomputed ``(cos a, sin a, cos b, sin b)`` of the yaws.
-    """
+def _pair_area(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Exact BEV intersection area of row-paired valid boxes ``a[k]``, ``b[k]``."""
     n = len(a)
     if n == 0:
         return np.zeros(0)
-    if trig is None:
-        trig = (np.cos(a[:, 6]), np.sin(a[:, 6]), np.cos(b[:, 6]), np.sin(b[:, 6]))
+    trig = (np.cos(a[:, 6]), np.sin(a[:, 6]), np.cos(b[:, 6]), np.sin(b[:, 6]))
     f8 = np.float64
     out = np.empty(n)
     _clip_areas(*(np.require(x, f8, "C") for x in (a, b, *trig)), _SNAP, out)
