@@ -143,10 +143,11 @@ _F2 = array_in(types.float64, 2)
 _I1 = array_in(types.int64)
 #: numba type of :func:`group_statistics`' result (for kernels that return it)
 GROUP_STATISTICS = types.Tuple((array_out(types.int64),) + (array_out(types.float64),) * 5
-                     + (array_out(types.float64, 2),) * 3)
+                               + (array_out(types.float64, 2),) * 3)
 
 
-@njit(GROUP_STATISTICS(_F2, _F2, _F2, _I1, _I1, types.boolean, types.boolean), cache=True, nogil=True)
+@njit(GROUP_STATISTICS(_F2, _F2, _F2, _I1, _I1, types.boolean, types.boolean),
+      cache=True, nogil=True)
 def group_statistics(probs, boxes, variances, starts, top, wrapped, top_yaw):
     """:func:`cluster_statistics` in one compiled pass over the grouped members:
     ``(counts, SE, AE, MI, ETV, ATV, epistemic, aleatoric, predictive)``. ``wrapped``:
