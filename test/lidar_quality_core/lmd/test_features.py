@@ -553,3 +553,78 @@ def test_rigid_motion_invariance(seed):
             np.testing.assert_allclose(b[:, k] - b[:, th], a[:, k] - a[:, th], atol=1e-9)
         d_th = (b[:, th] - a[:, th] - rot + math.pi) % (2 * math.pi) - math.pi
         np.testing.assert_allclose(d_th, 0, atol=1e-9)
+
+
+# ---------------------------------------------------------------- compiled set statistics
+@pytest.mark.parametrize("n", [0, 1, 2, 7, 8, 9, 15, 16, 17, 127, 128, 129, 300, 1031])
+def test_pairwise_sum_has_numpys_bits(n):
+    from lidar_quality_core.lmd.features import _pairwise_sum
+
+    rng = np.random.default_rng(n)
+    a = rng.normal(size=n + 3) * 10.0 ** rng.uniform(-8, 8, size=n + 3)
+    got = np.float64(_pairwise_sum(a, 3, n))
+    want = np.add.reduce(a[3:])  # numpy's own pairwise reduction of the same values
+    assert got.view(np.uint64) == want.view(np.uint64) or (n == 0 and got == want)
+
+
+def test_pairwise_sum_keeps_negative_zero():
+    from lidar_quality_core.lmd.features import _pairwise_sum
+
+    assert math.copysign(1.0, _pairwise_sum(np.full(4, -0.0), 0, 4)) == -1.0
+
+
+def _set_columns_numpy(q, cls, d, prow, theta, v_bev, v_3d, t, all_3d):
+    """The numpy chain the compiled kernel replaced (sets: own row, then members)."""
+    n = len(cls)
+    own = np.insert(q[:n], OWN_QUANTITIES.index("class"), cls, axis=1)
+    counts = 1 + np.bincount(d, minlength=n)
+    seg = np.concatenate([np.arange(n), d])
+    order = np.argsort(seg, kind="stable")
+    rows = np.concatenate([q[:n], q[n:][prow]])
+    rows[:n, 6] = q[:n, 6] + 0.0
+    rows[n:, 6] = theta
+    rows = rows[order]
+    starts = np.zeros(n, np.int64)
+    np.cumsum(counts[:-1], out=starts[1:])
+    cnt = counts[:, None].astype(float)
+    mean = np.add.reduceat(rows, starts, axis=0) / cnt
+    dev = rows - np.repeat(mean, counts, axis=0)
+    dev *= dev
+    std = np.sqrt(np.add.reduceat(dev, starts, axis=0) / cnt)
+    st = np.stack([np.minimum.reduceat(rows, starts, axis=0),
+                   np.maximum.reduceat(rows, starts, axis=0), mean, std], axis=2)
+    parts = [own, st.reshape(n, -1)]
+    sel = np.ones(len(d), bool) if all_3d else v_3d > t
+    for v, b in ((v_3d[sel], d[sel]), (v_bev, d)):
+        s = np.zeros((n, 4))
+        for k in range(n):
+            x = v[b == k]
+            if len(x):
+                s[k] = x.min(), x.max(), x.mean(), np.sqrt(((x - x.mean()) ** 2).mean())
+        parts.append(s)
+    return np.concatenate(parts + [cnt], axis=1)
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_box_columns_match_the_numpy_chain(seed):
+    from lidar_quality_core.lmd.features import _box_columns
+
+    rng = np.random.default_rng(seed)
+    n, m = int(rng.integers(1, 40)), int(rng.integers(0, 300))
+    q = rng.normal(size=(n + m, 16)) * 10.0 ** rng.uniform(-3, 3, size=16)
+    q[rng.random(q.shape) < 0.01] = -0.0
+    d = np.sort(rng.integers(0, n, size=3 * m if m else 0))
+    if seed == 5 and m:
+        d[:] = 0                       # one set of > 128 members: numpy halves its sum
+    prow = rng.integers(0, max(m, 1), size=len(d)) if m else np.zeros(0, np.int64)
+    theta = rng.uniform(-4, 4, size=len(d))
+    v_bev, v_3d = rng.random(len(d)), rng.random(len(d)) * 0.8
+    cls = rng.integers(0, 4, size=n).astype(float)
+    for all_3d in (False, True):
+        want = _set_columns_numpy(q, cls, d, prow, theta, v_bev, v_3d, 0.5, all_3d)
+        got = np.empty((n, 90))
+        _box_columns(q, cls, d, prow, theta, v_bev, v_3d, 0.5, all_3d, got)
+        # set statistics and counts to the bit; the IoU statistics as _pair_stats sums them
+        assert np.array_equal(got[:, :81].view(np.uint64), want[:, :81].view(np.uint64))
+        assert np.array_equal(got[:, 89], want[:, 89])
+        np.testing.assert_allclose(got[:, 81:89], want[:, 81:89], rtol=1e-12, atol=1e-15)
