@@ -160,45 +160,83 @@ def _class_ids(labels, n: int, class_names) -> np.ndarray:
         raise ValueError("string labels need class_names (or integer strings)") from None
 
 
+_F1, _F2, _I1 = array_in(types.float64), array_in(types.float64, 2), array_in(types.int64)
+
+
+@njit(array_out(types.boolean)(_F2, _F1), cache=True, nogil=True)
+def _valid_rows(b, scores):
+    # boxes with every value and the score finite and l, w, h > 0
+    out = np.empty(len(b), np.bool_)
+    for k in range(len(b)):
+        ok = np.isfinite(scores[k])
+        for c in range(b.shape[1]):
+            ok &= np.isfinite(b[k, c])
+        out[k] = ok and b[k, 3] > 0.0 and b[k, 4] > 0.0 and b[k, 5] > 0.0
+    return out
+
+
 def _box_ok(b: np.ndarray, scores: np.ndarray) -> np.ndarray:
-    with np.errstate(invalid="ignore"):
-        return (np.isfinite(b).all(axis=1) & np.isfinite(scores)
-                & (np.min(b[:, 3:6], axis=1, initial=np.inf) > 0.0))
+    return _valid_rows(np.ascontiguousarray(b, np.float64),
+                       np.ascontiguousarray(scores, np.float64))
+
+
+@njit(types.void(_F2, _F1, _F1, _I1, _F1, _F1, _F1, types.int64, array_out(types.float64, 2)),
+      cache=True, nogil=True, error_model="numpy")
+def _quantity_rows(b, scores, theta, count, mx, mean, std, n_points, q):
+    # SET_QUANTITIES row by row, each value's arithmetic in numpy's order (same bits; a
+    # division by 0 gives inf / NaN as in numpy)
+    for k in range(len(b)):
+        for c in range(6):
+            q[k, c] = b[k, c]
+        q[k, 6], q[k, 7] = theta[k], scores[k]
+        l, w, h = b[k, 3], b[k, 4], b[k, 5]
+        q[k, 8] = l * w * h
+        q[k, 9] = 2.0 * (l * w + l * h + w * h)
+        q[k, 10] = q[k, 8] / q[k, 9]
+        q[k, 11] = count[k]
+        q[k, 12] = count[k] / n_points if n_points else 0.0
+        q[k, 13], q[k, 14], q[k, 15] = mx[k], mean[k], std[k]
 
 
 def _quantities(b, scores, st, n_points: int) -> np.ndarray:
     """(n, 16) SET_QUANTITIES of boxes ``b`` with in-box point statistics ``st``."""
     q = np.empty((len(b), len(SET_QUANTITIES)))
-    q[:, :6] = b[:, :6]
-    q[:, 6] = _wrap(b[:, 6])
-    q[:, 7] = scores
-    l, w, h = b[:, 3], b[:, 4], b[:, 5]
-    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
-        q[:, 8] = l * w * h
-        q[:, 9] = 2.0 * (l * w + l * h + w * h)
-        q[:, 10] = q[:, 8] / q[:, 9]
-    q[:, 11] = st.count
-    q[:, 12] = st.count / n_points if n_points else 0.0
-    q[:, 13] = st.max
-    q[:, 14] = st.mean
-    q[:, 15] = st.std
+    f8 = np.float64
+    with np.errstate(invalid="ignore"):  # an inf yaw: an invalid box, its row NaN anyway
+        theta = np.ascontiguousarray(_wrap(b[:, 6]), f8)
+    _quantity_rows(np.ascontiguousarray(b, f8), np.ascontiguousarray(scores, f8), theta,
+                   st.count, st.max, st.mean, st.std, int(n_points), q)
     return q
 
 
-def _derived_iou_3d(a, b, iou_bev):
-    """IoU_3D of row pairs from their exact BEV IoU (see module docstring)."""
-    aa, ab = a[:, 3] * a[:, 4], b[:, 3] * b[:, 4]
-    inter = iou_bev * (aa + ab) / (1.0 + iou_bev)
-    top = np.minimum(a[:, 2] + a[:, 5] / 2, b[:, 2] + b[:, 5] / 2)
-    bot = np.maximum(a[:, 2] - a[:, 5] / 2, b[:, 2] - b[:, 5] / 2)
-    inter *= np.maximum(top - bot, 0.0)
-    union = aa * a[:, 5] + ab * b[:, 5] - inter
-    with np.errstate(invalid="ignore", divide="ignore"):
-        out = np.where(union > 0, inter / union, 0.0)
-    return np.clip(np.nan_to_num(out, nan=0.0), 0.0, 1.0)
+@njit(array_out(types.float64)(_F2, _F2, _I1, _I1, _F1), cache=True, nogil=True,
+      error_model="numpy")
+def _derived_3d(a, b, d, p, iou_bev):
+    # IoU_3D of the pairs (a[d], b[p]) from their exact BEV IoU, numpy's operations in
+    # its order (np.maximum / np.minimum's NaN rules); a NaN result is 0, clipped to [0, 1]
+    out = np.empty(len(d))
+    for k in range(len(d)):
+        i, j, v = d[k], p[k], iou_bev[k]
+        aa, ab = a[i, 3] * a[i, 4], b[j, 3] * b[j, 4]
+        inter = v * (aa + ab) / (1.0 + v)
+        t1, t2 = a[i, 2] + a[i, 5] / 2, b[j, 2] + b[j, 5] / 2
+        top = t1 if t1 <= t2 or np.isnan(t1) else t2
+        b1, b2 = a[i, 2] - a[i, 5] / 2, b[j, 2] - b[j, 5] / 2
+        bot = b1 if b1 >= b2 or np.isnan(b1) else b2
+        z = top - bot
+        inter *= z if z >= 0.0 or np.isnan(z) else 0.0
+        union = aa * a[i, 5] + ab * b[j, 5] - inter
+        r = inter / union if union > 0 else 0.0
+        out[k] = 0.0 if np.isnan(r) else min(max(r, 0.0), 1.0)
+    return out
 
 
-_F1, _F2, _I1 = array_in(types.float64), array_in(types.float64, 2), array_in(types.int64)
+def _derived_iou_3d(a, b, d, p, iou_bev):
+    """IoU_3D of the pairs ``(a[d], b[p])`` from their exact BEV IoU (module docstring)."""
+    f8 = np.float64
+    return _derived_3d(np.ascontiguousarray(a, f8), np.ascontiguousarray(b, f8),
+                       np.ascontiguousarray(d, np.int64), np.ascontiguousarray(p, np.int64),
+                       np.ascontiguousarray(iou_bev, f8))
 
 
 @njit(cache=True, nogil=True)
@@ -439,4 +477,4 @@ def _member_pairs(mode, b, ok, cls, pb, ps, pok, plab, preimage, t, class_aware,
             pcls = _class_ids(plab, len(pb), class_names)
             m &= cls[d] == pcls[p]
         d, p, v = d[m], p[m], v[m]
-    return d, p, v, _derived_iou_3d(b[d], pb[p], v)
+    return d, p, v, _derived_iou_3d(b, pb, d, p, v)

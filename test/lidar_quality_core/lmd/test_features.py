@@ -628,3 +628,55 @@ def test_box_columns_match_the_numpy_chain(seed):
         assert np.array_equal(got[:, :81].view(np.uint64), want[:, :81].view(np.uint64))
         assert np.array_equal(got[:, 89], want[:, 89])
         np.testing.assert_allclose(got[:, 81:89], want[:, 81:89], rtol=1e-12, atol=1e-15)
+
+
+def _odd_boxes(rng, n):
+    """Boxes with the values that take other branches: NaN, inf, sizes 0 and < 0."""
+    b = rng.normal(size=(n, 7)) * [10, 10, 1, 2, 1, 1, 3] + [0, 0, 0, 4, 2, 1.5, 0]
+    b[rng.random(b.shape) < 0.03] = np.nan
+    b[rng.random(b.shape) < 0.02] = np.inf
+    b[rng.random(n) < 0.05, 3] = 0.0
+    b[rng.random(n) < 0.05, 5] = -1.0
+    return b
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_box_helpers_match_numpy(seed):
+    from lidar_quality_core.box_geometry import SegmentStats
+    from lidar_quality_core.conventions import wrap_angle
+    from lidar_quality_core.lmd.features import _box_ok, _derived_iou_3d, _quantities
+
+    rng = np.random.default_rng(seed)
+    b, pb = _odd_boxes(rng, 60), _odd_boxes(rng, 200)
+    sc = rng.random(60)
+    sc[::11] = np.nan
+    with np.errstate(invalid="ignore"):
+        want_ok = (np.isfinite(b).all(axis=1) & np.isfinite(sc)
+                   & (np.min(b[:, 3:6], axis=1, initial=np.inf) > 0.0))
+    assert np.array_equal(_box_ok(b, sc), want_ok)
+
+    cnt = rng.integers(0, 50, 60)
+    st = SegmentStats(cnt, rng.random(60), rng.random(60), rng.random(60), rng.random(60))
+    for n_points in (0, 1234):
+        q = _quantities(b, sc, st, n_points)
+        l, w, h = b[:, 3], b[:, 4], b[:, 5]
+        with np.errstate(all="ignore"):
+            vol, surf = l * w * h, 2.0 * (l * w + l * h + w * h)
+            want = np.column_stack([b[:, :6], wrap_angle(b[:, 6]), sc, vol, surf, vol / surf,
+                                    cnt, cnt / n_points if n_points else np.zeros(60),
+                                    st.max, st.mean, st.std])
+        assert np.array_equal(q, want, equal_nan=True)
+
+    d, p = rng.integers(0, 60, 500), rng.integers(0, 200, 500)
+    v = rng.random(500)
+    v[::50] = 0.0
+    a, c = b[d], pb[p]
+    with np.errstate(all="ignore"):  # the numpy chain the kernel replaced
+        aa, ab = a[:, 3] * a[:, 4], c[:, 3] * c[:, 4]
+        inter = v * (aa + ab) / (1.0 + v)
+        top = np.minimum(a[:, 2] + a[:, 5] / 2, c[:, 2] + c[:, 5] / 2)
+        bot = np.maximum(a[:, 2] - a[:, 5] / 2, c[:, 2] - c[:, 5] / 2)
+        inter *= np.maximum(top - bot, 0.0)
+        union = aa * a[:, 5] + ab * c[:, 5] - inter
+        want = np.clip(np.nan_to_num(np.where(union > 0, inter / union, 0.0), nan=0.0), 0, 1)
+    assert np.array_equal(_derived_iou_3d(b, pb, d, p, v), want)
