@@ -376,8 +376,7 @@ def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, propo
         d, p, v_bev, v_3d = _member_pairs(mode, b, ok, cls, pb, ps, pok, plab, preimage,
                                           float(iou_threshold), class_aware,
                                           proposal_score_threshold, class_names)
-        d, p, v_bev, v_3d = _without_self_copies(sc, d, p, v_bev, v_3d, pb, ps)
-        need, prow = np.unique(p, return_inverse=True)
+        d, p, v_bev, v_3d, need, prow = _without_self_copies(sc, d, p, v_bev, v_3d, pb, ps)
         allb = np.concatenate([b, pb[need]])
     else:
         allb = b
@@ -406,30 +405,114 @@ def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, propo
 
 
 def _without_self_copies(sc, d, p, v_bev, v_3d, pb, ps):
-    """The member pairs in canonical order, without each box's self copy.
+    """The member pairs in canonical order, without each box's self copy, and the
+    proposals they use: ``(d, p, v_bev, v_3d, need, prow)``, ``need`` the sorted distinct
+    ``p`` and ``prow`` each pair's row in it (``np.unique(p, return_inverse=True)``).
 
     Self copy of box k: a member with k's geometry (IoU_3D >= SELF_IOU) and score
     (within SELF_SCORE_TOL); of several, the closest in score, then in IoU_3D, then the
     lowest (score, box values), so the choice never depends on the proposal order. The
     rest are sorted by (box, score, box values): sums over a set then run in the same
     order whatever order the proposals came in (bit-identical features)."""
-    order = np.lexsort((ps[p], d))
-    d, p, v_bev, v_3d = d[order], p[order], v_bev[order], v_3d[order]
-    ms = ps[p]
-    if np.any((d[1:] == d[:-1]) & (ms[1:] == ms[:-1])):  # equal scores in a set (rare)
-        order = np.lexsort(tuple(pb[p][:, ::-1].T) + (ms, d))
-        d, p, v_bev, v_3d, ms = d[order], p[order], v_bev[order], v_3d[order], ms[order]
-    gap = np.abs(ms - sc[d])
-    cand = np.flatnonzero((v_3d >= SELF_IOU)
-                          & (gap <= SELF_SCORE_TOL * np.maximum(1.0, np.abs(sc[d]))))
-    if len(cand):
-        # lexsort is stable and the pairs are already in (box, score, box values) order
-        cand = cand[np.lexsort((-v_3d[cand], gap[cand], d[cand]))]
-        first = np.unique(d[cand], return_index=True)[1]
-        other = np.ones(len(d), dtype=bool)
-        other[cand[first]] = False
-        d, p, v_bev, v_3d = d[other], p[other], v_bev[other], v_3d[other]
-    return d, p, v_bev, v_3d
+    f8, i8 = np.float64, np.int64
+    c = np.ascontiguousarray
+    return _canonical_sets(c(sc, f8), c(d, i8), c(p, i8), c(v_bev, f8), c(v_3d, f8),
+                           c(pb, f8), c(ps, f8), SELF_SCORE_TOL, SELF_IOU)
+
+
+@njit(types.boolean(_F2, _F1, _I1, types.int64, types.int64), cache=True, nogil=True)
+def _before(pb, ps, p, i, j):
+    # member p[i] strictly before p[j]: lower score, then lower box values in column order
+    if ps[p[i]] != ps[p[j]]:
+        return ps[p[i]] < ps[p[j]]
+    for c in range(pb.shape[1]):
+        if pb[p[i], c] != pb[p[j], c]:
+            return pb[p[i], c] < pb[p[j], c]
+    return False
+
+
+@njit(types.Tuple((array_out(types.int64), array_out(types.int64), array_out(types.float64),
+                   array_out(types.float64), array_out(types.int64),
+                   array_out(types.int64)))(_F1, _I1, _I1, _F1, _F1, _F2, _F1, types.float64,
+                                            types.float64), cache=True, nogil=True)
+def _canonical_sets(sc, d, p, v_bev, v_3d, pb, ps, tol, self_iou):
+    # :func:`_without_self_copies` in one pass over the boxes' runs: each run sorted by
+    # score (a stable merge sort; a run with equal scores, rare, by an insertion sort on
+    # (score, box values), stable too: numpy's lexsort order), its self copy dropped, then
+    # the distinct proposals by a mark table
+    m = len(d)
+    by_box = np.argsort(d, kind="mergesort")  # the pairs come grouped; kept stable if not
+    order = np.empty(m, np.int64)
+    keep = np.ones(m, np.bool_)
+    a = 0
+    while a < m:
+        k = d[by_box[a]]
+        e = a + 1
+        while e < m and d[by_box[e]] == k:
+            e += 1
+        run = by_box[a:e]
+        scores = np.empty(e - a)
+        for i in range(e - a):
+            scores[i] = ps[p[run[i]]]
+        o = run[np.argsort(scores, kind="mergesort")]
+        tie = False
+        for i in range(1, e - a):
+            tie |= ps[p[o[i]]] == ps[p[o[i - 1]]]
+        if tie:
+            o = run.copy()
+            for i in range(1, e - a):
+                x = o[i]
+                j = i
+                while j > 0 and _before(pb, ps, p, x, o[j - 1]):
+                    o[j] = o[j - 1]
+                    j -= 1
+                o[j] = x
+        order[a:e] = o
+        # the self copy: the closest score, then the highest IoU_3D, then the first
+        lim = tol * max(1.0, abs(sc[k]))
+        best = -1
+        for i in range(a, e):
+            q = order[i]
+            gap = abs(ps[p[q]] - sc[k])
+            if v_3d[q] >= self_iou and gap <= lim:
+                if best < 0:
+                    best = i
+                else:
+                    bq = order[best]
+                    bgap = abs(ps[p[bq]] - sc[k])
+                    if gap < bgap or (gap == bgap and v_3d[q] > v_3d[bq]):
+                        best = i
+        if best >= 0:
+            keep[best] = False
+        a = e
+    n_out = 0
+    for i in range(m):
+        n_out += keep[i]
+    od, op = np.empty(n_out, np.int64), np.empty(n_out, np.int64)
+    ob, o3 = np.empty(n_out), np.empty(n_out)
+    used = np.zeros(len(ps), np.int64)
+    t = 0
+    for i in range(m):
+        if keep[i]:
+            q = order[i]
+            od[t], op[t], ob[t], o3[t] = d[q], p[q], v_bev[q], v_3d[q]
+            used[p[q]] = 1
+            t += 1
+    n_need = 0
+    for j in range(len(ps)):
+        if used[j]:
+            used[j] = n_need
+            n_need += 1
+        else:
+            used[j] = -1
+    need = np.empty(n_need, np.int64)
+    for j in range(len(ps)):
+        if used[j] >= 0:
+            need[used[j]] = j
+    prow = np.empty(n_out, np.int64)
+    for i in range(n_out):
+        prow[i] = used[op[i]]
+    return od, op, ob, o3, need, prow
 
 
 def _unpack_proposals(proposals):

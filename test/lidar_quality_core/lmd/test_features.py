@@ -680,3 +680,49 @@ def test_compiled_box_helpers_match_numpy(seed):
         union = aa * a[:, 5] + ab * c[:, 5] - inter
         want = np.clip(np.nan_to_num(np.where(union > 0, inter / union, 0.0), nan=0.0), 0, 1)
     assert np.array_equal(_derived_iou_3d(b, pb, d, p, v), want)
+
+
+def _canonical_numpy(sc, d, p, v_bev, v_3d, pb, ps):
+    """The numpy chain _without_self_copies replaced (lexsorts), and np.unique."""
+    from lidar_quality_core.lmd.features import SELF_IOU, SELF_SCORE_TOL
+
+    order = np.lexsort((ps[p], d))
+    d, p, v_bev, v_3d = d[order], p[order], v_bev[order], v_3d[order]
+    ms = ps[p]
+    if np.any((d[1:] == d[:-1]) & (ms[1:] == ms[:-1])):
+        order = np.lexsort(tuple(pb[p][:, ::-1].T) + (ms, d))
+        d, p, v_bev, v_3d, ms = d[order], p[order], v_bev[order], v_3d[order], ms[order]
+    gap = np.abs(ms - sc[d])
+    cand = np.flatnonzero((v_3d >= SELF_IOU)
+                          & (gap <= SELF_SCORE_TOL * np.maximum(1.0, np.abs(sc[d]))))
+    if len(cand):
+        cand = cand[np.lexsort((-v_3d[cand], gap[cand], d[cand]))]
+        other = np.ones(len(d), dtype=bool)
+        other[cand[np.unique(d[cand], return_index=True)[1]]] = False
+        d, p, v_bev, v_3d = d[other], p[other], v_bev[other], v_3d[other]
+    return (d, p, v_bev, v_3d) + np.unique(p, return_inverse=True)
+
+
+@pytest.mark.parametrize("seed", range(8))
+def test_canonical_sets_match_the_lexsorts(seed):
+    from lidar_quality_core.lmd.features import _without_self_copies
+
+    rng = np.random.default_rng(seed)
+    n, m, k = 12, 80, int(rng.integers(0, 400))
+    sc = rng.random(n)
+    pb = rng.normal(size=(m, 7))
+    ps = np.round(rng.random(m), 1 if seed % 2 else 6)   # odd seeds: many equal scores
+    pb[1::9] = pb[0]                                      # equal boxes, equal scores too
+    ps[1::9] = ps[0]
+    d = rng.integers(0, n, k) if seed % 3 else np.sort(rng.integers(0, n, k))
+    p = rng.integers(0, m, k)
+    v_bev = rng.random(k)
+    v_3d = np.where(rng.random(k) < 0.3, 1.0, v_bev * 0.9)
+    copies = rng.random(k) < 0.3                          # members that are the box itself
+    ps_copy = ps.copy()
+    p[copies] = m - 1 - np.arange(copies.sum()) % 5
+    ps_copy[m - 5:] = sc[d[copies][:5]] if copies.sum() >= 5 else ps_copy[m - 5:]
+    want = _canonical_numpy(sc, d, p, v_bev, v_3d, pb, ps_copy)
+    got = _without_self_copies(sc, d, p, v_bev, v_3d, pb, ps_copy)
+    for g, w in zip(got, want):
+        assert np.array_equal(g, w)
