@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from numba import types
 
-__all__ = ["array_in", "array_out"]
+__all__ = ["array_in", "array_out", "F1", "F2", "I1"]
 
 
 def array_in(dtype, ndim: int = 1, layout: str = "C", aligned: bool = True) -> types.Array:
@@ -21,3 +21,9 @@ def array_in(dtype, ndim: int = 1, layout: str = "C", aligned: bool = True) -> t
 def array_out(dtype, ndim: int = 1) -> types.Array:
     """An output array type: writable, C-contiguous."""
     return types.Array(dtype, ndim, "C")
+
+
+#: the input types the kernels use most: float64 vectors and matrices, int64 vectors
+F1 = array_in(types.float64)
+F2 = array_in(types.float64, 2)
+I1 = array_in(types.int64)

@@ -90,7 +90,7 @@ from numba import njit, types
 from lidar_quality_core.box_geometry import _pair_stats, as_boxes, as_cloud, inbox_point_stats
 from lidar_quality_core.conventions import wrap_angle as _wrap
 from lidar_quality_core.iou import iou_bev_pairs, sparse_iou
-from lidar_quality_core.kernel_types import array_in, array_out
+from lidar_quality_core.kernel_types import F1 as _F1, F2 as _F2, I1 as _I1, array_in, array_out
 
 from .proposal_sets import ProposalSets
 
@@ -158,9 +158,6 @@ def _class_ids(labels, n: int, class_names) -> np.ndarray:
         return lab.astype(np.int64).astype(np.float64)
     except ValueError:
         raise ValueError("string labels need class_names (or integer strings)") from None
-
-
-_F1, _F2, _I1 = array_in(types.float64), array_in(types.float64, 2), array_in(types.int64)
 
 
 @njit(array_out(types.boolean)(_F2, _F1), cache=True, nogil=True)

@@ -36,7 +36,7 @@ import numpy as np
 from numba import njit, types
 
 from lidar_quality_core.box_geometry import as_boxes
-from lidar_quality_core.kernel_types import array_in, array_out
+from lidar_quality_core.kernel_types import F1 as _F1, F2 as _F2, array_in, array_out
 from lidar_quality_core.parameters import param
 
 from .clustering import (DBSCAN_IMPLS, VOTING_RULES, dbscan_pairs, dbscan_sklearn,
@@ -243,10 +243,6 @@ def merge_heads(heads: Sequence, config: MergeConfig = MergeConfig(), *,
                        stats=ClusterStatistics(*stats), top_member=vi[order[top]],
                        member_head=mhead, member_index=midx, member_cluster=member_cluster,
                        num_heads=K, min_samples=min_samples)
-
-
-_F2 = array_in(types.float64, 2)
-_F1 = array_in(types.float64)
 
 
 _MERGED_OUT = types.Tuple((array_out(types.int64), array_out(types.int64),

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 from lidar_quality_core.conventions import wrap_angle
-from lidar_quality_core.kernel_types import array_in, array_out
+from lidar_quality_core.kernel_types import F2 as _F2, I1 as _I1, array_out
 from numba import njit, types
 from scipy.special import entr
 
@@ -139,8 +139,6 @@ def _entropy_bits_row(p, r, inv_ln2):
     return h
 
 
-_F2 = array_in(types.float64, 2)
-_I1 = array_in(types.int64)
 #: numba type of :func:`group_statistics`' result (for kernels that return it)
 GROUP_STATISTICS = types.Tuple((array_out(types.int64),) + (array_out(types.float64),) * 5
                                + (array_out(types.float64, 2),) * 3)
