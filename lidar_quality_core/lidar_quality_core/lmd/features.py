@@ -271,28 +271,22 @@ def _pairwise_sum(a, lo, n):
     return _pairwise_sum(a, lo, h) + _pairwise_sum(a, lo + h, n - h)
 
 
-@njit(types.void(_F2, _F1, _I1, _I1, _F1, _F1, _F1, types.float64, types.boolean,
+@njit(types.void(_F2, _I1, _I1, _F1, _F1, _F1, types.float64, types.boolean,
                  array_out(types.float64, 2)), cache=True, nogil=True)
-def _box_columns(q, cls, d, prow, theta, v_bev, v_3d, t, all_3d, out):
-    # The 90 columns of the n = len(out) boxes in one call (as numpy, a chain of ~250
-    # calls a frame): the own quantities q[:n] with the class inserted, the set statistics
-    # over each box's rows (its own first, then its members q[n + prow] in pair order,
-    # heading ``theta`` relative to the box's), the IoU statistics and N. Pairs ``d`` are
-    # sorted by box. A set's sums are its first row plus numpy's pairwise sum of the
-    # others, as np.add.reduceat adds a run of rows: the same bits as the numpy chain
-    # (a gather, a sort, four reduceat, a repeat) this replaces.
+def _set_columns(q, d, prow, theta, v_bev, v_3d, t, all_3d, out):
+    # The proposal-set columns of the n = len(out) boxes in one call (as numpy, a chain of
+    # ~250 calls a frame), after the own quantities: the set statistics over each box's
+    # rows (its own q[k] first, then its members q[n + prow] in pair order, heading
+    # ``theta`` relative to the box's), the IoU statistics and N. Pairs ``d`` are sorted
+    # by box. A set's sums are its first row plus numpy's pairwise sum of the others, as
+    # np.add.reduceat adds a run of rows: the same bits as the numpy chain (a gather, a
+    # sort, four reduceat, a repeat) this replaces.
     n, nq = out.shape[0], q.shape[1]
     first = np.zeros(n + 1, np.int64)
     for j in range(len(d)):
         first[d[j] + 1] += 1
     for k in range(n):
         first[k + 1] += first[k]
-    for k in range(n):
-        for c in range(_CLASS_COL):
-            out[k, c] = q[k, c]
-        out[k, _CLASS_COL] = cls[k]
-        for c in range(_CLASS_COL, nq):
-            out[k, c + 1] = q[k, c]
     col = nq + 1
     run = np.empty(np.diff(first).max() + 1 if n else 1)  # one set's values of a column
     for k in range(n):
@@ -383,20 +377,18 @@ def compute_features(points_xyz, intensity, boxes, scores, labels=None, *, propo
     allsc = sc if mode == "none" else np.concatenate([sc, ps[need]])
     q = _quantities(allb, allsc, st, n_pts)
 
+    out = np.empty((n, n_feat))
+    own = len(OWN_QUANTITIES)
+    out[:, :_CLASS_COL] = q[:n, :_CLASS_COL]
+    out[:, _CLASS_COL] = cls
+    out[:, _CLASS_COL + 1:own] = q[:n, _CLASS_COL:]
     if mode != "none":
-        out = np.empty((n, n_feat))
         th = q[:n, _THETA_COL][d]
         theta = th + _wrap(q[n:, _THETA_COL][prow] - th)  # headings relative to the box's
-        _box_columns(q, cls, d, prow, theta, v_bev, v_3d, float(iou_threshold),
+        _set_columns(q, d, prow, theta, v_bev, v_3d, float(iou_threshold),
                      mode != "threshold", out)
-        if extra is not None:
-            out[:, out.shape[1] - extra.shape[1]:] = extra
-        out[~ok] = np.nan
-        return out
-    parts = [np.insert(q[:n], _CLASS_COL, cls, axis=1)]
     if extra is not None:
-        parts.append(extra)
-    out = np.concatenate(parts, axis=1)
+        out[:, n_feat - extra.shape[1]:] = extra
     out[~ok] = np.nan
     return out
 
