@@ -14,7 +14,7 @@ from .box_geometry import as_boxes
 from .kernel_types import array_in, array_out
 
 __all__ = ["bev_intersection_area", "iou_bev", "iou_3d", "iou_bev_pairs", "iou_3d_pairs",
-           "sparse_iou"]
+           "iou_bev_indexed", "sparse_iou"]
 
 _DENSE_PREFILTER_MAX = 1 << 16  # above this many pairs, find neighbours with a k-d tree
 _SNAP = 1e-10                   # relative distance below which a vertex is "on" an edge
@@ -215,6 +215,17 @@ def _indexed(a, b, ia, ib, three_d: bool) -> np.ndarray:
     out = np.empty(len(ia))
     _indexed_iou(a, b, np.asarray(ia, np.int64), np.asarray(ib, np.int64), ca, sa, cb, sb,
                  three_d, _SNAP, out)
+    return out
+
+
+def iou_bev_indexed(boxes, i, j, cos, sin) -> np.ndarray:
+    """(N,) BEV IoU of the pairs ``boxes[i[p]]``, ``boxes[j[p]]`` of valid boxes (finite,
+    l and w > 0; (M, 7) float64, C order) whose yaw cosines and sines the caller has
+    (``np.cos`` / ``np.sin`` of column 6): :func:`iou_bev_pairs`' values without gathering
+    the pairs or checking the boxes again."""
+    out = np.empty(len(i))
+    _indexed_iou(boxes, boxes, np.asarray(i, np.int64), np.asarray(j, np.int64), cos, sin,
+                 cos, sin, False, _SNAP, out)
     return out
 
 

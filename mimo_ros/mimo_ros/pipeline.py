@@ -389,14 +389,6 @@ def _point_features(cloud, merge: MergeResult) -> np.ndarray:
     return out
 
 
-def _head_fraction(merge: MergeResult, k_used: int) -> np.ndarray:
-    """Distinct heads among each cluster's members / heads of the frame."""
-    c = merge.member_cluster
-    m = c >= 0
-    pairs = np.unique(c[m] * max(k_used, 1) + merge.member_head[m])
-    return np.bincount(pairs // max(k_used, 1), minlength=len(merge)) / max(k_used, 1)
-
-
 def cluster_features(merge: MergeResult, settings: MimoSettings, k_used: int,
                      cloud=None) -> np.ndarray:
     """(C, F) feature rows of a merge result (``settings.feature_names()`` order)."""
@@ -404,7 +396,7 @@ def cluster_features(merge: MergeResult, settings: MimoSettings, k_used: int,
     C = len(merge)
     out = np.empty((C, len(settings.feature_names())))
     out[:, 0] = st.cluster_size
-    out[:, 1] = _head_fraction(merge, k_used)
+    out[:, 1] = merge.head_fraction(k_used)
     out[:, 2] = st.shannon_entropy
     out[:, 3] = st.aleatoric_entropy
     out[:, 4] = st.mutual_information

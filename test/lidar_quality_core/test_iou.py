@@ -8,7 +8,7 @@ from hypothesis import strategies as st
 
 from lidar_quality_core import iou as iou_mod
 from lidar_quality_core.iou import (bev_intersection_area, iou_3d, iou_3d_pairs, iou_bev,
-                                    iou_bev_pairs, sparse_iou)
+                                    iou_bev_indexed, iou_bev_pairs, sparse_iou)
 
 OCT = 2.0 * (math.sqrt(2.0) - 1.0)  # unit square & its 45-degree rotation: octagon area
 
@@ -241,6 +241,18 @@ def test_pairs_equal_diagonal():
     a, b = rand_boxes(rng, 30), rand_boxes(rng, 30)
     np.testing.assert_allclose(iou_bev_pairs(a, b), np.diag(iou_bev(a, b)), atol=1e-12)
     np.testing.assert_allclose(iou_3d_pairs(a, b), np.diag(iou_3d(a, b)), atol=1e-12)
+
+
+def test_indexed_pairs_equal_gathered_pairs_to_the_bit():
+    rng = np.random.default_rng(9)
+    a = rand_boxes(rng, 40)
+    a[5:10] = a[:5] + [0.2, 0, 0, 0, 0, 0, 1e-9]   # near copies
+    a[10:13] = a[10:13] * [1, 1, 1, 1, 1, 1, 0] + [0, 0, 0, 0, 0, 0, np.pi]
+    i, j = np.triu_indices(40, 1)
+    want = iou_bev_pairs(a[i], a[j])
+    got = iou_bev_indexed(np.ascontiguousarray(a), i, j, np.cos(a[:, 6]), np.sin(a[:, 6]))
+    np.testing.assert_array_equal(got.view(np.uint64), want.view(np.uint64))
+    assert (want > 0).sum() > 20
 
 
 # ---------------------------------------------------------------- properties

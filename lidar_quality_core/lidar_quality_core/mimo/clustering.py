@@ -18,13 +18,13 @@ LiDAR-MIMO, = the authors' code mpitropov/uncertainty_eval ``cluster.py`` unless
 * Pairwise distances: only the pairs at distance <= eps matter, and one call of the core
   IoU costs ~0.45 ms plus ~1 us a pair (measured), most of the merge. ``neighbour_pairs``
   therefore decides most pairs with cheap, exact bounds on the intersection area and
-  passes only the undecided ones (IoU near 1 - eps) to ``iou_bev_pairs``; its pairs equal
+  passes only the undecided ones (IoU near 1 - eps) to ``iou_bev_indexed``; its pairs equal
   those of thresholding ``sparse_iou`` (tested). Candidates and bounds are one compiled
   sweep over the boxes sorted by x (``_bounded_pairs``): as ~50 numpy steps they cost a
   MIMO frame 0.35 ms, most of it per-step overhead on a few hundred pairs.
 * Our DBSCAN (``dbscan="own"``, default) gives exactly scikit-learn's labels (cluster ids
   in order of their first core point; a border point joins the first such cluster it
-  touches; tested against it), from the sparse neighbour pairs by min-label propagation
+  touches; tested against it), from the sparse neighbour pairs by a union-find
   over core-core pairs. ``dbscan="sklearn"`` runs ``sklearn.cluster.DBSCAN(metric=
   "precomputed")`` on the dense distance matrix. Measured on the benchmark frames
   (bench/bench_mimo_merge.py ``mimo.dbscan_*``; one thread, 2 shared cores; the
@@ -40,8 +40,8 @@ import numpy as np
 from numba import njit, types
 
 from lidar_quality_core.box_geometry import as_boxes
-from lidar_quality_core.iou import iou_bev_pairs
-from lidar_quality_core.kernel_types import array_in
+from lidar_quality_core.iou import iou_bev_indexed
+from lidar_quality_core.kernel_types import I1, array_in, array_out
 
 __all__ = ["VOTING_RULES", "DBSCAN_IMPLS", "min_cluster_size", "neighbour_pairs",
            "valid_neighbour_pairs", "dbscan_pairs", "dbscan_sklearn"]
@@ -176,40 +176,77 @@ def valid_neighbour_pairs(boxes, eps, labels):
                               labels is not None, 1.0 - float(eps))
     ok = st == 1
     k = np.flatnonzero(~ok)
-    if len(k):
-        ok[k[(1.0 - iou_bev_pairs(boxes[i[k]], boxes[j[k]])) <= eps]] = True
+    if len(k):  # the undecided pairs' exact IoU (the boxes are valid, their trig is known)
+        ok[k[(1.0 - iou_bev_indexed(boxes, i[k], j[k], c, s)) <= eps]] = True
     return i[ok], j[ok]
 
 
 def dbscan_pairs(n: int, i: np.ndarray, j: np.ndarray, min_samples: int) -> np.ndarray:
     """DBSCAN labels (-1 noise) of ``n`` points from their neighbour pairs ``i < j``; the
     same labels as scikit-learn's DBSCAN on the matching distance matrix."""
-    deg = np.bincount(i, minlength=n) + np.bincount(j, minlength=n) + 1  # + itself
+    i = np.ascontiguousarray(i, np.int64).reshape(-1)
+    j = np.ascontiguousarray(j, np.int64).reshape(-1)
+    if len(i) != len(j):
+        raise ValueError(f"{len(i)} pair starts for {len(j)} pair ends")
+    lab, ok = _dbscan(int(n), i, j, int(min_samples))
+    if not ok:
+        raise ValueError(f"neighbour pairs name points outside 0..{n - 1}")
+    return lab
+
+
+@njit(types.Tuple((array_out(types.int64), types.boolean))(types.int64, I1, I1, types.int64),
+      cache=True, nogil=True)
+def _dbscan(n, i, j, min_samples):
+    """``(labels, ok)``: :func:`dbscan_pairs` in one compiled pass (a numpy chain of ~30
+    steps before; ``ok`` False for pairs outside ``0..n-1``). Core points: ``min_samples`` or more
+    neighbours, itself included. Their connected components over core-core pairs, each
+    named by its smallest index (union-find, the smaller root kept). A border point joins
+    the component of smallest root among its core neighbours: sklearn expands clusters in
+    index order of their first core point, so the first to reach a border point keeps it.
+    Cluster id: the rank of the root in index order (sklearn's numbering)."""
+    m = len(i)
+    deg = np.ones(n, np.int64)
+    for k in range(m):
+        a, b = i[k], j[k]
+        if a < 0 or a >= n or b < 0 or b >= n:
+            return np.empty(0, np.int64), False
+        deg[a] += 1
+        deg[b] += 1
     core = deg >= min_samples
-    none = n  # sentinel label: lab[none] = none keeps the pointer jumping in range
-    lab = np.append(np.where(core, np.arange(n), none), none)
-    both = core[i] & core[j]
-    a, b = i[both], j[both]
-    # Min-label propagation over core-core pairs, with pointer jumping: every core point
-    # ends with the smallest index of its connected component.
-    while len(a):
-        m = np.minimum(lab[a], lab[b])
-        np.minimum.at(lab, a, m)
-        np.minimum.at(lab, b, m)
-        lab = lab[lab]
-        if np.array_equal(lab[a], lab[b]):
-            break
-    # Border points: the component of smallest root among their core neighbours. sklearn
-    # expands clusters in root order, so the first one to reach a border point keeps it.
-    one = core[i] != core[j]
-    if one.any():
-        c, x = np.where(core[i[one]], i[one], j[one]), np.where(core[i[one]], j[one], i[one])
-        np.minimum.at(lab, x, lab[c])
-    # cluster id = rank of the root (a core point labelled with itself) in index order,
-    # which is sklearn's order (clusters numbered as their first core point is found)
-    rank = np.cumsum(lab[:n] == np.arange(n)) - 1
-    lab = lab[:n]
-    return np.where(lab < none, rank[np.minimum(lab, n - 1)], -1)
+    root = np.arange(n)
+    for k in range(m):
+        a, b = i[k], j[k]
+        if core[a] and core[b]:
+            while root[a] != a:
+                root[a] = root[root[a]]
+                a = root[a]
+            while root[b] != b:
+                root[b] = root[root[b]]
+                b = root[b]
+            if a < b:
+                root[b] = a
+            elif b < a:
+                root[a] = b
+    lab = np.full(n, n, np.int64)   # n: no cluster
+    for x in range(n):  # roots are smaller than their members: one pass in index order
+        if core[x]:
+            lab[x] = x if root[x] == x else lab[root[x]]
+    for k in range(m):
+        a, b = i[k], j[k]
+        if core[a] != core[b]:
+            c, x = (a, b) if core[a] else (b, a)
+            if lab[c] < lab[x]:
+                lab[x] = lab[c]
+    rank = np.empty(n, np.int64)
+    r = -1
+    for x in range(n):
+        if lab[x] == x:
+            r += 1
+        rank[x] = r
+    out = np.empty(n, np.int64)
+    for x in range(n):
+        out[x] = rank[lab[x]] if lab[x] < n else -1
+    return out, True
 
 
 def dbscan_sklearn(n: int, i: np.ndarray, j: np.ndarray, min_samples: int,

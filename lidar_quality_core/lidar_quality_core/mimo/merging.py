@@ -36,7 +36,7 @@ import numpy as np
 from numba import njit, types
 
 from lidar_quality_core.box_geometry import as_boxes
-from lidar_quality_core.kernel_types import F1 as _F1, F2 as _F2, array_in, array_out
+from lidar_quality_core.kernel_types import F1 as _F1, F2 as _F2, I1, array_in, array_out
 from lidar_quality_core.parameters import param
 
 from .clustering import (DBSCAN_IMPLS, VOTING_RULES, dbscan_pairs, dbscan_sklearn,
@@ -133,6 +133,17 @@ class MergeResult:
 
     def __len__(self) -> int:
         return len(self.boxes)
+
+    def head_fraction(self, num_heads: int | None = None) -> np.ndarray:
+        """(C,) distinct heads among each cluster's members / ``num_heads`` (default K)."""
+        k = self.num_heads if num_heads is None else int(num_heads)
+        out, ok = _head_fraction(np.ascontiguousarray(self.member_cluster, np.int64),
+                                 np.ascontiguousarray(self.member_head, np.int64),
+                                 len(self), max(k, 1))
+        if not ok:
+            raise ValueError(f"members name clusters outside 0..{len(self) - 1} or heads "
+                             f"outside 0..{max(k, 1) - 1}")
+        return out
 
     def members(self, c: int) -> tuple[np.ndarray, np.ndarray]:
         """``(head, index)`` arrays of cluster ``c``'s members."""
@@ -243,6 +254,26 @@ def merge_heads(heads: Sequence, config: MergeConfig = MergeConfig(), *,
                        stats=ClusterStatistics(*stats), top_member=vi[order[top]],
                        member_head=mhead, member_index=midx, member_cluster=member_cluster,
                        num_heads=K, min_samples=min_samples)
+
+
+@njit(types.Tuple((array_out(types.float64), types.boolean))(I1, I1, types.int64, types.int64),
+      cache=True, nogil=True)
+def _head_fraction(cluster, head, n_clusters, k):
+    """``(fraction, ok)`` of :meth:`MergeResult.head_fraction` in one compiled pass (a
+    unique and a bincount before); ``ok`` False for a member outside the clusters / heads."""
+    seen = np.zeros(n_clusters * k, np.bool_)
+    count = np.zeros(n_clusters, np.int64)
+    for m in range(len(cluster)):
+        c = cluster[m]
+        if c < 0:
+            continue
+        h = head[m]
+        if c >= n_clusters or h < 0 or h >= k:
+            return np.empty(0), False
+        if not seen[c * k + h]:
+            seen[c * k + h] = True
+            count[c] += 1
+    return count / k, True
 
 
 _MERGED_OUT = types.Tuple((array_out(types.int64), array_out(types.int64),

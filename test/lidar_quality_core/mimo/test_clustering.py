@@ -51,6 +51,28 @@ def test_own_dbscan_equals_sklearn(n, ms, seed, density):
     np.testing.assert_array_equal(dbscan_sklearn(n, i, j, ms), _sk(n, i, j, ms))
 
 
+@pytest.mark.parametrize("ms", [1, 2, 3])
+def test_own_dbscan_equals_sklearn_on_long_chains(ms):
+    # components whose roots are reached late (pairs listed from the far end), as a
+    # union-find must get right: long chains, a star, pairs in reverse order
+    rng = np.random.default_rng(7)
+    n = 400
+    order = rng.permutation(n)
+    chain = np.sort(np.column_stack([order[:-1], order[1:]]), axis=1)[::-1]
+    i, j = chain[:, 0], chain[:, 1]
+    cut = rng.random(len(i)) < 0.05  # ~20 chains
+    i, j = np.append(i[~cut], np.zeros(5, int)), np.append(j[~cut], np.arange(395, 400))
+    np.testing.assert_array_equal(dbscan_pairs(n, i, j, ms), _sk(n, i, j, ms))
+
+
+def test_own_dbscan_refuses_pairs_outside_the_points():
+    with pytest.raises(ValueError, match="outside 0..2"):
+        dbscan_pairs(3, np.array([0]), np.array([3]), 1)
+    with pytest.raises(ValueError, match="outside"):
+        dbscan_pairs(0, np.array([0]), np.array([1]), 1)
+    assert dbscan_pairs(0, np.zeros(0, int), np.zeros(0, int), 2).shape == (0,)
+
+
 def _ref_pairs(boxes, eps, labels=None):
     i, j, v = sparse_iou(boxes)
     k = (1.0 - v) <= eps

@@ -303,6 +303,24 @@ def test_one_head_boxes_can_share_a_cluster():
     assert len(r) == 1 and r.stats.cluster_size[0] == 3
 
 
+@pytest.mark.parametrize("voting", ["affirmative", "consensus", "unanimous"])
+def test_head_fraction_counts_distinct_heads(voting):
+    # against its definition: distinct (cluster, head) pairs among the members / K
+    rng = np.random.default_rng(11)
+    base = np.column_stack([rng.uniform(0, 40, (30, 2)), np.zeros(30), rng.uniform(0.5, 5, (30, 2)),
+                            np.ones(30), rng.uniform(-3, 3, 30)])
+    heads = [head(base[rng.random(30) < 0.8] + rng.normal(0, 0.2, 7) * [1, 1, 0, 0, 0, 0, 0.1],
+                  rng.normal(0, 1, 5)) for _ in range(4)]
+    heads[1] = head(np.vstack([heads[1].boxes, heads[1].boxes[:5] + 0.1]), rng.normal(0, 1, 5))
+    r = merge_heads(heads, MergeConfig(voting=voting))
+    want = np.array([len(set(r.members(c)[0].tolist())) for c in range(len(r))]) / 4
+    np.testing.assert_array_equal(r.head_fraction(), want)
+    np.testing.assert_array_equal(r.head_fraction(5), want * 4 / 5)
+    assert (r.stats.cluster_size > 4 * want).any()  # a cluster with one head twice
+    with pytest.raises(ValueError, match="heads outside"):
+        r.head_fraction(2)
+
+
 def test_sklearn_option_gives_the_same_merge():
     rng = np.random.default_rng(5)
     base = np.column_stack([rng.uniform(0, 40, (30, 2)), np.zeros(30), rng.uniform(0.5, 5, (30, 2)),
