@@ -25,6 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .boxes import decoded_header
 from .detection_cdr import CdrError, read_string
 from .quality_array_cdr import cdr_string, pad
 
@@ -85,8 +86,6 @@ def decode_point_cloud(data) -> DecodedCloud:
     ``lidar_quality_ros.serialized_take`` lends: read in place); ``CdrError`` for another
     encapsulation or inconsistent bytes. The sizes are not checked against each other
     here: ``pointcloud`` does that, with the same messages as for a deserialized cloud."""
-    from std_msgs.msg import Header
-
     if isinstance(data, bytes):
         buf = data
     elif (isinstance(data, np.ndarray) and data.dtype == np.uint8 and data.ndim == 1
@@ -119,10 +118,8 @@ def decode_point_cloud(data) -> DecodedCloud:
     points = np.frombuffer(buf, np.uint8, count=n_data, offset=p)
     points.flags.writeable = False  # a view of the received bytes, whoever owns them
     is_dense = _byte(buf, p + n_data, end) != 0
-    h = Header(frame_id=frame_id)
-    h.stamp.sec, h.stamp.nanosec = sec, nsec
-    return DecodedCloud(h, height, width, tuple(fields), is_big, point_step, row_step,
-                        points, is_dense)
+    return DecodedCloud(decoded_header(sec, nsec, frame_id), height, width, tuple(fields),
+                        is_big, point_step, row_step, points, is_dense)
 
 
 def serialized_cloud(header, height: int, width: int, fields, is_bigendian: bool,

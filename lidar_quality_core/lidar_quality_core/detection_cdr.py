@@ -36,8 +36,8 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit, types
 
-from .boxes import (DetectionArrays, arrays_from_fields, arrays_from_table, hypothesis_table,
-                    rpy_angles, rpy_terms)
+from .boxes import (DetectionArrays, arrays_from_fields, arrays_from_table, decoded_header,
+                    hypothesis_table, rpy_angles, rpy_terms)
 from .kernel_types import array_in, array_out
 from .quality_array_cdr import cdr_strings
 
@@ -107,8 +107,6 @@ def open_array(data, what: str, elements: str, min_size: int):
     indexed by offset / 4, the std_msgs/Header, the sequence length and the offset of its
     first element. ``CdrError`` for another encapsulation, truncated bytes, or more
     ``elements`` than fit at ``min_size`` bytes each."""
-    from std_msgs.msg import Header
-
     buf = bytes(data)
     end = len(buf)
     if _ENCAPS.get(buf[:2]) is None or end < 4:
@@ -130,9 +128,7 @@ def open_array(data, what: str, elements: str, min_size: int):
     p += 4
     if n > (end - p) // min_size:
         raise CdrError(f"{n} {elements} cannot fit in {end} bytes")
-    h = Header(frame_id=frame_id)
-    h.stamp.sec, h.stamp.nanosec = sec, nsec
-    return buf, words, h, n, p
+    return buf, words, decoded_header(sec, nsec, frame_id), n, p
 
 
 def array_opening(buf: bytes, n: int) -> bytearray:

@@ -137,9 +137,9 @@ class InputReader:
     on every message of that subscription (Fast DDS notifies the listener's waiters on
     data), ready or not. Measured in lmd_node at 10 Hz: 175 wait-set builds per second
     for 2 timer callbacks, 2-3 ms of CPU per frame on the executor thread alone. Here
-    the wait set holds the inputs, their events and one guard condition, is allocated
-    once, and a wake costs a few calls into rcl (the calls rclpy's own
-    ``wait_for_message`` makes). Create the ``subscriptions`` in a
+    the wait set holds the inputs and one guard condition (their QoS events every
+    ``EVENT_POLL_S``), is allocated once, and a wake costs a few calls into rcl (the
+    calls rclpy's own ``wait_for_message`` makes). Create the ``subscriptions`` in a
     :class:`ReadByInputReader` group, so that the executor never takes their messages.
 
     ``optional`` subscriptions (use_sim_time's /clock, /tf) are read here too, moved out
@@ -151,9 +151,13 @@ class InputReader:
     reader's own and handed over as read-only uint8 views of them
     (:class:`~lidar_quality_ros.serialized_take.BufferTaker`)."""
 
+    #: seconds between two checks of the QoS events (``_wait_and_take``)
+    EVENT_POLL_S = 0.2
+
     def __init__(self, node, subscriptions: Sequence, name: str, on_error: Callable[[str], None],
                  optional: Sequence = (), warmup: Callable[[], None] | None = None,
                  buffered: Sequence = ()):
+        self._events_due = 0.0  # monotonic time of the next QoS event check
         self._required = list(subscriptions)
         # raw subscriptions whose messages are taken into buffers of the reader's own
         # (serialized_take: one copy fewer than rclpy's take); callbacks without info only
@@ -262,13 +266,23 @@ class InputReader:
         for sub in subs:
             ws.add_subscription(sub.handle)
         ws.add_guard_condition(self._wake.handle)
-        events = [e for sub in subs for e in sub.event_handlers]
+        # The QoS events join the wait set every EVENT_POLL_S, not on every wake: three per
+        # subscription (lost messages, incompatible QoS, incompatible type), each added and
+        # checked through rclpy's Python, cost a MIMO wake ~35 us (18 events, measured).
+        # An event stays latched in the middleware until taken, so none is missed; it is
+        # handled up to EVENT_POLL_S later.
+        timeout = 500_000_000  # only so that a node destroyed without close() lets go
+        left = self._events_due - time.monotonic()
+        events = [e for sub in subs for e in sub.event_handlers] if left <= 0 else ()
         for e in events:
             e.add_to_wait_set(ws)
-        # a timeout only so that a node destroyed without close() lets the thread go
-        ws.wait(500_000_000)
+        if not events:
+            timeout = min(timeout, int(left * 1e9) + 1)
+        ws.wait(timeout)
         ready = ws.get_ready_entities("subscription")
         todo = []
+        if events:
+            self._events_due = time.monotonic() + self.EVENT_POLL_S
         for e in events:
             if e.is_ready(ws):
                 data = e.take_data()

@@ -4,7 +4,7 @@ import math
 import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
-from lidar_quality_core.boxes import (TILT_TOLERANCE_DEG, arrays_to_detections,
+from lidar_quality_core.boxes import (TILT_TOLERANCE_DEG, arrays_to_detections, decoded_header,
                                       detections_to_arrays, quaternion_to_rpy, tilt_issue,
                                       yaw_to_quaternion)
 from std_msgs.msg import Header
@@ -183,3 +183,17 @@ def test_arrays_from_fields_top_hypothesis_and_columns(per_det):
         for c in {c for c, _ in hs}:
             np.testing.assert_array_equal(arr.class_scores[c][i], [s for k, s in hs if k == c][-1])
     assert list(arr.class_scores) == list(dict.fromkeys(f[1] for f in flat))
+
+
+def test_decoded_header_is_the_header_rclpy_builds():
+    from builtin_interfaces.msg import Time
+    from rclpy.serialization import deserialize_message, serialize_message
+
+    h = decoded_header(-3, 999_999_999, "lidar_top")
+    want = Header(frame_id="lidar_top", stamp=Time(sec=-3, nanosec=999_999_999))
+    assert h == want and repr(h) == repr(want)
+    assert (h.stamp.sec, h.stamp.nanosec, h.frame_id) == (-3, 999_999_999, "lidar_top")
+    assert serialize_message(h) == serialize_message(want)
+    assert deserialize_message(serialize_message(h), Header) == want
+    h.frame_id = "map"  # a decoded header stays an ordinary message
+    assert h.frame_id == "map" and h != want
