@@ -62,8 +62,9 @@ def rpy_angles(num: np.ndarray, den: np.ndarray, sine: np.ndarray) -> np.ndarray
 def yaw_to_quaternion(yaw: np.ndarray) -> np.ndarray:
     """Yaw angles (N,) -> (N, 4) quaternions ``x, y, z, w`` of a rotation about +z."""
     half = 0.5 * np.asarray(yaw, dtype=np.float64).reshape(-1)
-    zeros = np.zeros_like(half)
-    return np.stack([zeros, zeros, np.sin(half), np.cos(half)], axis=1)
+    out = np.zeros((len(half), 4))
+    out[:, 2], out[:, 3] = np.sin(half), np.cos(half)
+    return out
 
 
 @dataclass

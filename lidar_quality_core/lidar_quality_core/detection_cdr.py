@@ -680,6 +680,23 @@ def _write_detections(hdr, names, name_at, ids, id_at, counts, order, S, pose_co
     return out
 
 
+_NAME_STRINGS: dict = {}  # class names -> their cdr_strings, read-only (encode_detections)
+
+
+def _name_strings(class_names) -> tuple[np.ndarray, np.ndarray]:
+    """``cdr_strings(class_names)``, kept: a node encodes the same few names every frame."""
+    key = tuple(class_names)
+    got = _NAME_STRINGS.get(key)
+    if got is None:
+        if len(_NAME_STRINGS) >= 16:
+            _NAME_STRINGS.clear()
+        got = cdr_strings(key)
+        for a in got:
+            a.flags.writeable = False
+        _NAME_STRINGS[key] = got
+    return got
+
+
 def encode_detections(header, boxes, class_names, class_scores, *, ids=None,
                       covariance_diagonal=None) -> bytes:
     """Serialized (little-endian CDR) Detection3DArray of new boxes: the message
@@ -709,7 +726,7 @@ def encode_detections(header, boxes, class_names, class_scores, *, ids=None,
     frame = header.frame_id.encode() + b"\0"
     hdr = f.stamp.pack(header.stamp.sec, header.stamp.nanosec) + f.u32.pack(len(frame)) + frame
     hdr += b"\0" * (-len(hdr) % 4)  # the next field (a uint32) is 4-aligned
-    names, name_at = cdr_strings(class_names)
+    names, name_at = _name_strings(class_names)
     id_bytes, id_at = cdr_strings(range(n) if ids is None else ids)
     return _write_detections(np.frombuffer(hdr, np.uint8), names, name_at, id_bytes, id_at,
                              counts.astype(np.int64), order.astype(np.int64), S,

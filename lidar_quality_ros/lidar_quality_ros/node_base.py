@@ -335,13 +335,13 @@ class QualityNode(Node):
                 self._outputs[name].publish(msg)
         if out.markers is not None and self.pub_markers is not None:
             self.pub_markers.publish(out.markers)
+        counts = self._counts
         for key, n in out.counts.items():
-            self._counts[key] += n
-            self.diag.set_value(key, self._counts[key])
+            counts[key] += n
         for text in out.notes:
             self.get_logger().info(text)
-        for key, value in out.values.items():
-            self.diag.set_value(key, value)
+        self.diag.set_values([*((key, counts[key]) for key in out.counts),
+                              *out.values.items()])
         self.diag.frame_processed((time.perf_counter() - t0) * 1e3)
 
     # ------------------------------------------------------------------ watchdog

@@ -176,6 +176,8 @@ class InputReader:
         self._on_error = on_error
         self._stopping = False
         self._wake = GuardCondition(None, None, context=self._context)
+        self._wake_handle = self._wake.handle
+        self._entries, self._entries_for = [], None  # _entries_of(self._subs), for that list
         self._warmup, self.warmup_error = warmup, None
         self.ready = threading.Event()
         with self._context.handle:
@@ -259,13 +261,27 @@ class InputReader:
             held.pop(sub).close()
         return bool(gone)
 
+    def _entries_of(self, subs) -> list:
+        """Per subscription what a wake reads of it, looked up once (each is a property
+        or a call into rcl; the topic name takes the handle's lock): ``(sub, handle,
+        pointer, taker, topic, label, with_info)``."""
+        out = []
+        for sub in subs:
+            topic = sub.topic_name
+            out.append((sub, sub.handle, sub.handle.pointer, self._takers.get(id(sub)), topic,
+                        f"input {topic}", sub._callback_type is WITH_INFO))
+        return out
+
     def _wait_and_take(self) -> list:
         ws = self._wait_set
         subs = self._subs
+        if self._entries_for is not subs:
+            self._entries, self._entries_for = self._entries_of(subs), subs
+        entries = self._entries
         ws.clear_entities()
-        for sub in subs:
-            ws.add_subscription(sub.handle)
-        ws.add_guard_condition(self._wake.handle)
+        for entry in entries:
+            ws.add_subscription(entry[1])
+        ws.add_guard_condition(self._wake_handle)
         # The QoS events join the wait set every EVENT_POLL_S, not on every wake: three per
         # subscription (lost messages, incompatible QoS, incompatible type), each added and
         # checked through rclpy's Python, cost a MIMO wake ~35 us (18 events, measured).
@@ -288,24 +304,22 @@ class InputReader:
                 data = e.take_data()
                 if data:
                     todo.append((e.callback, "QoS event", (data,)))
-        for sub in subs:
-            if sub.handle.pointer not in ready:
+        for sub, handle, pointer, taker, topic, what, with_info in entries:
+            if pointer not in ready:
                 continue
-            taker = self._takers.get(id(sub))
             try:
-                data = NotImplemented if taker is None else taker.take(sub.handle.pointer)
+                data = NotImplemented if taker is None else taker.take(pointer)
                 if data is not NotImplemented:  # taken into our buffer (None: nothing)
                     if data is not None:
-                        todo.append((sub.callback, f"input {sub.topic_name}", (data,)))
+                        todo.append((sub.callback, what, (data,)))
                     continue
-                info = sub.handle.take_message(sub.msg_type, sub.raw)
+                info = handle.take_message(sub.msg_type, sub.raw)
             except Exception as exc:  # noqa: BLE001 - one bad message, not the reader
-                self._on_error(f"cannot take a message on {sub.topic_name}: "
+                self._on_error(f"cannot take a message on {topic}: "
                                f"{type(exc).__name__}: {exc}")
                 continue
             if info is not None:  # (message, message info), as the executor hands them
-                args = info if sub._callback_type is WITH_INFO else info[:1]
-                todo.append((sub.callback, f"input {sub.topic_name}", args))
+                todo.append((sub.callback, what, info if with_info else info[:1]))
         return todo
 
     def stop(self, timeout: float = 5.0) -> None:

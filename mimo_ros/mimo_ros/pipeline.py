@@ -72,6 +72,7 @@ from lidar_quality_core.transforms import Transform, input_transforms, transform
 
 from lidar_quality_core.mimo.head_inputs import class_probabilities, ordered_variances
 from lidar_quality_core.mimo.merging import HeadDetections, MergeConfig, MergeResult, merge_heads
+from lidar_quality_core.mimo.outputs import output_tables
 from lidar_quality_core.mimo.uncertainty import BOX_PARAMS
 
 __all__ = ["DEFAULT_CLASS_NAMES", "STAT_FEATURES", "POINT_FEATURES", "MimoSettings",
@@ -539,23 +540,14 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
     iou = np.asarray(predicted_iou, np.float64).reshape(-1)
     if len(conf) != len(m) or len(iou) != len(m):
         raise ValueError(f"{len(conf)} confidences / {len(iou)} IoUs for {len(m)} detections")
-    fg = m.class_probs[:, 1:]
-    if scores == "confidence":
-        with np.errstate(invalid="ignore", divide="ignore"):
-            scale = np.where(np.isfinite(conf) & (m.scores > 0), conf / m.scores, 1.0)
-        fg = fg * scale[:, None]
-    elif scores != "merged":
+    if scores not in OUTPUT_SCORES:
         raise ValueError(f"scores must be 'confidence' or 'merged', got {scores!r}")
     st = m.stats
-    pred = st.predictive_variance
-    cov = np.zeros((len(m), 6))
-    xyzyaw = [0, 1, 2, 6]
-    cov[:, [0, 1, 2, 5]] = np.where(np.isnan(pred[:, xyzyaw]), st.epistemic_variance[:, xyzyaw],
-                                    pred[:, xyzyaw])
     ids = frame.merged_ids()
     labels = frame.class_labels()
     r = np.arange(len(m)) if kept is None else np.flatnonzero(kept)
-    boxes, fg_r, cov_r, ids_r = m.boxes[r], fg[r], cov[r], [ids[i] for i in r.tolist()]
+    fg_r, cov_r, figures = output_tables(m, conf, iou, r, scale=scores == "confidence")
+    boxes, ids_r = m.boxes[r], [ids[i] for i in r.tolist()]
     if autoware is not None:
         own = autoware.existence_fallback < 0  # the merged score, as on the vision output
         dets = objects_from_boxes(
@@ -571,9 +563,6 @@ def output_messages(header, frame: MimoFrame, confidence, predicted_iou, *,
                                     covariance_diagonal=cov_r)
     verdict = (drift or DomainVerdict({})).message_fields(ClusterUncertaintyArray)
     if serialized_uncertainty:
-        figures = np.column_stack([st.shannon_entropy, st.aleatoric_entropy,
-                                   st.mutual_information, st.epistemic_total_variance,
-                                   st.aleatoric_total_variance, conf, iou])
         return dets, encode_cluster_uncertainty_array(
             header, confidence_model_id, iou_model_id, ids, labels, st.cluster_size,
             figures, **verdict)

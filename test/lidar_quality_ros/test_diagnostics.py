@@ -37,6 +37,10 @@ def test_counts_rates_and_levels(ros):
     assert d.dropped == 4
     assert float(v["processing_ms_p50"]) == 3.0
     assert v["sync.matched"] == "2"
+    d.set_value("scheduling", "normal")
+    d.set_values([("boxes.in", 7), ("drift.level", "OK"), ("scheduling", "SCHED_FIFO 10")])
+    v = _values(d.status())
+    assert (v["boxes.in"], v["drift.level"], v["scheduling"]) == ("7", "OK", "SCHED_FIFO 10")
     time.sleep(0.6)  # the losses leave the window
     d.status()
     assert d.status().level == OK

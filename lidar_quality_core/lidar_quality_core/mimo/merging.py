@@ -237,7 +237,7 @@ def merge_heads(heads: Sequence, config: MergeConfig = MergeConfig(), *,
 
     probs = _softmax(logits, cfg.temperature)
     member_label = np.argmax(np.where(fg, probs, -1.0), axis=1)
-    member_score = np.take_along_axis(probs, member_label[:, None], axis=1)[:, 0]
+    member_score = probs[np.arange(len(probs)), member_label]
     i, j = valid_neighbour_pairs(boxes, cfg.eps, member_label if cfg.class_aware else None)
     if cfg.dbscan == "own":
         lab = dbscan_pairs(len(vi), i, j, min_samples)
