@@ -218,6 +218,27 @@ def _add_counts(V, rows, edges, sorted_edges, out):
             out[r, b] += 1.0
 
 
+@njit("Tuple((int64[::1], int64))(float64[::1], int64)", cache=True, nogil=True)
+def _ranked(scores, k):
+    """``(the first k of the finite scores' ranking, how many are finite)``: highest
+    first, equal scores in index order (numpy's stable argsort of -scores; a numpy chain
+    of ~12 calls a frame before)."""
+    n = scores.shape[0]
+    taken = np.zeros(n, np.bool_)
+    finite = 0
+    for i in range(n):
+        finite += np.isfinite(scores[i])
+    out = np.empty(min(k, finite), np.int64)
+    for r in range(out.shape[0]):
+        best = -1
+        for i in range(n):
+            if not taken[i] and np.isfinite(scores[i]) and (best < 0 or scores[i] > scores[best]):
+                best = i
+        taken[best] = True
+        out[r] = best
+    return out, finite
+
+
 @njit("void(float64[:, ::1], float64[:, ::1], float64[::1], float64[::1], boolean[::1], "
       "float64, float64[::1])", cache=True, nogil=True)
 def _window_scores(total, mass, train_n, spread, empty, min_values, out):
@@ -410,16 +431,14 @@ class DriftMonitor:
         if len(self._counts) >= self.min_frames:
             _window_scores(self._total, self._mass, self._train_n, self._spread, self._empty,
                            float(self.min_values), scores)
-        scored = np.flatnonzero(np.isfinite(scores))
         # only the first few of the ranking are reported (top)
-        ranked = [(self._names[i], float(scores[i]))
-                  for i in scored[np.argsort(-scores[scored], kind="stable")[:max(self.top, 1)]
-                                  ].tolist()]
+        first, n_scored = _ranked(scores, max(self.top, 1))
+        ranked = [(self._names[i], float(scores[i])) for i in first.tolist()]
         score = ranked[0][1] if ranked else 0.0
         level = ERROR if score >= self.error else WARN if score >= self.warn else OK
         drifted = [(k, round(v, 4)) for k, v in ranked[:self.top] if v >= self.warn]
         text = self.words(drifted) if explain else ""
-        return DriftReport(float(score), level, drifted, text, len(self._counts), len(scored))
+        return DriftReport(float(score), level, drifted, text, len(self._counts), n_scored)
 
     def _layout(self, layout) -> tuple[list, dict]:
         """Per ``(names, X)`` group of a layout: ``(the profiled names, their columns or

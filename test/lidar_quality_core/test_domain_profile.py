@@ -319,3 +319,19 @@ def test_window_scores_are_psi_counts_of_each_row(seed):
         else:
             assert out[r] == pytest.approx(psi_counts(q, total[r], mass[r]) - q.spread,
                                            rel=1e-12, abs=1e-14), r
+
+
+def test_ranking_is_numpys_stable_argsort_of_the_finite_scores():
+    from lidar_quality_core.domain_profile import _ranked
+
+    rng = np.random.default_rng(3)
+    for _ in range(300):
+        n = int(rng.integers(0, 12))
+        s = rng.choice([0.0, -0.0, 0.3, 0.3, 1.5, np.nan, np.inf, -np.inf], n) if rng.random() < 0.5 \
+            else rng.normal(size=n)
+        scored = np.flatnonzero(np.isfinite(s))
+        for k in (1, 3, 20):
+            want = scored[np.argsort(-s[scored], kind="stable")[:k]]
+            got, n_scored = _ranked(np.ascontiguousarray(s, np.float64), k)
+            np.testing.assert_array_equal(got, want)
+            assert n_scored == len(scored)
