@@ -24,15 +24,15 @@ LiDAR-MIMO, = the authors' code mpitropov/uncertainty_eval ``cluster.py`` unless
   MIMO frame 0.35 ms, most of it per-step overhead on a few hundred pairs.
 * Our DBSCAN (``dbscan="own"``, default) gives exactly scikit-learn's labels (cluster ids
   in order of their first core point; a border point joins the first such cluster it
-  touches; tested against it), from the sparse neighbour pairs by a union-find
+  touches; tested against it), from the sparse neighbour pairs by a compiled union-find
   over core-core pairs. ``dbscan="sklearn"`` runs ``sklearn.cluster.DBSCAN(metric=
   "precomputed")`` on the dense distance matrix. Measured on the benchmark frames
   (bench/bench_mimo_merge.py ``mimo.dbscan_*``; one thread, 2 shared cores; the
-  clustering step alone, from the neighbour pairs; medians of 3 runs of 100 calls):
-  K=2 x 100 boxes: own 0.055 ms, sklearn 1.68 ms; K=4 x 100: own 0.067 ms, sklearn
-  2.68 ms. An interleaved run on a busy machine also tried a sparse precomputed matrix:
-  K=2 own 0.059, sklearn dense 1.67, sparse 2.11 ms; K=4 own 0.095, dense 3.93, sparse
-  2.52 ms. Own it is (25-40x faster; sklearn's per-call overhead dominates at n <= 400).
+  clustering step alone, from the neighbour pairs), a fresh-clone bench of 2026-12-06:
+  K=2 x 100 boxes: own 0.004 ms, sklearn 1.76 ms; K=4 x 100: own 0.008 ms, sklearn
+  2.54 ms (as a numpy chain of min-label propagation, own took 0.055 and 0.067 ms; a
+  sparse precomputed matrix for sklearn, tried once, 2.11 and 2.52 ms). Own it is
+  (sklearn's per-call overhead dominates at n <= 400).
 """
 from __future__ import annotations
 
