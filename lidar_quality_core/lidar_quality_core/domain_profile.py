@@ -310,7 +310,8 @@ def explain(name: str, profile: QuantityProfile, values) -> str:
 
 class _GroupValues:
     """One frame's values as the matrices they came in (``[(names, X), ...]``), read by
-    quantity like a dict (only :func:`explain` reads them, for the drifted quantities)."""
+    quantity with ``get`` like a dict (only :func:`explain` reads them, for the drifted
+    quantities)."""
 
     __slots__ = ("_groups", "_where")
 
@@ -322,15 +323,10 @@ class _GroupValues:
     def where(groups) -> dict:
         return {n: (g, j) for g, (names, _) in enumerate(groups) for j, n in enumerate(names)}
 
-    def _find(self, k):
-        return self._where.get(k)
-
-    def __contains__(self, k) -> bool:
-        return self._find(k) is not None
-
-    def __getitem__(self, k) -> np.ndarray:
-        g, j = self._find(k)
-        return self._groups[g][1][:, j]
+    def get(self, k):
+        """Quantity ``k``'s values (a view of its column), or None, as ``dict.get``."""
+        at = self._where.get(k)
+        return None if at is None else self._groups[at[0]][1][:, at[1]]
 
 
 @dataclass
@@ -458,20 +454,9 @@ class DriftMonitor:
     def words(self, drifted) -> str:
         """The ``drifted`` quantities (``(name, PSI)`` pairs) in words over the current
         window (:func:`explain`: their live medians against training)."""
-        return "; ".join(explain(k, self.profile.quantities[k], self._window_values(k))
-                         for k, _ in drifted)
-
-    def _window_values(self, k) -> np.ndarray:
-        """Quantity ``k``'s values over the window's frames (that have it)."""
-        out = []
-        for f in self._values:
-            if type(f) is _GroupValues:  # read in place: 50 frames x 3 calls of its mapping
-                at = f._where.get(k)
-                if at is not None:
-                    out.append(f._groups[at[0]][1][:, at[1]])
-            elif k in f:
-                out.append(f[k])
-        return np.concatenate(out)
+        # one get a frame, the frames' dicts and _GroupValues alike
+        return "; ".join(explain(k, self.profile.quantities[k], np.concatenate(
+            [v for f in self._values if (v := f.get(k)) is not None])) for k, _ in drifted)
 
 
 # ------------------------------------------------------------------ in the nodes

@@ -206,11 +206,12 @@ def _indexed_iou(a, b, ia, ib, ca, sa, cb, sb, three_d, snap, out):
         out[p] = 0.0 if v != v else min(max(v, 0.0), 1.0)
 
 
-def _indexed(a, b, ia, ib, three_d: bool) -> np.ndarray:
-    """:func:`_indexed_iou` of index pairs into ``a`` and ``b`` (valid boxes)."""
+def _indexed(a, b, ia, ib, three_d: bool, trig=None) -> np.ndarray:
+    """:func:`_indexed_iou` of index pairs into ``a`` and ``b`` (valid boxes); ``trig``:
+    the yaw cosines and sines of ``a``, when ``b`` is ``a`` and the caller has them."""
     f8 = np.float64
     a, b = np.require(a, f8, "C"), np.require(b, f8, "C")
-    ca, sa = np.cos(a[:, 6]), np.sin(a[:, 6])
+    ca, sa = trig if trig is not None else (np.cos(a[:, 6]), np.sin(a[:, 6]))
     cb, sb = (ca, sa) if b is a else (np.cos(b[:, 6]), np.sin(b[:, 6]))
     out = np.empty(len(ia))
     _indexed_iou(a, b, np.asarray(ia, np.int64), np.asarray(ib, np.int64), ca, sa, cb, sb,
@@ -223,10 +224,7 @@ def iou_bev_indexed(boxes, i, j, cos, sin) -> np.ndarray:
     l and w > 0; (M, 7) float64, C order) whose yaw cosines and sines the caller has
     (``np.cos`` / ``np.sin`` of column 6): :func:`iou_bev_pairs`' values without gathering
     the pairs or checking the boxes again."""
-    out = np.empty(len(i))
-    _indexed_iou(boxes, boxes, np.asarray(i, np.int64), np.asarray(j, np.int64), cos, sin,
-                 cos, sin, False, _SNAP, out)
-    return out
+    return _indexed(boxes, boxes, i, j, False, trig=(cos, sin))
 
 
 def sparse_iou(a, b=None, mode: str = "bev"):

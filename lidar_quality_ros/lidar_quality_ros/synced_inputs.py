@@ -177,7 +177,7 @@ class InputReader:
         self._stopping = False
         self._wake = GuardCondition(None, None, context=self._context)
         self._wake_handle = self._wake.handle
-        self._entries, self._entries_for = [], None  # _entries_of(self._subs), for that list
+        self._entries = self._entries_of(self._subs)
         self._warmup, self.warmup_error = warmup, None
         self.ready = threading.Event()
         with self._context.handle:
@@ -257,6 +257,7 @@ class InputReader:
         current = {id(s) for s in self._node.subscriptions}
         gone = [s for s in self._subs if s not in self._required and id(s) not in current]
         self._subs = [s for s in self._subs if s not in gone]
+        self._entries = [e for e in self._entries if e[0] not in gone]
         for sub in gone:
             held.pop(sub).close()
         return bool(gone)
@@ -275,8 +276,6 @@ class InputReader:
     def _wait_and_take(self) -> list:
         ws = self._wait_set
         subs = self._subs
-        if self._entries_for is not subs:
-            self._entries, self._entries_for = self._entries_of(subs), subs
         entries = self._entries
         ws.clear_entities()
         for entry in entries:

@@ -136,13 +136,12 @@ class MergeResult:
 
     def head_fraction(self, num_heads: int | None = None) -> np.ndarray:
         """(C,) distinct heads among each cluster's members / ``num_heads`` (default K)."""
-        k = self.num_heads if num_heads is None else int(num_heads)
+        k = max(self.num_heads if num_heads is None else int(num_heads), 1)
         out, ok = _head_fraction(np.ascontiguousarray(self.member_cluster, np.int64),
-                                 np.ascontiguousarray(self.member_head, np.int64),
-                                 len(self), max(k, 1))
+                                 np.ascontiguousarray(self.member_head, np.int64), len(self), k)
         if not ok:
             raise ValueError(f"members name clusters outside 0..{len(self) - 1} or heads "
-                             f"outside 0..{max(k, 1) - 1}")
+                             f"outside 0..{k - 1}")
         return out
 
     def members(self, c: int) -> tuple[np.ndarray, np.ndarray]:
