@@ -11,7 +11,7 @@ import pytest
 import xgboost
 
 from lidar_quality_core.model_store import load_model, models_dir, save_model
-from lidar_quality_core.tree_ensemble import MAX_ROWS, pack
+from lidar_quality_core.tree_ensemble import MAX_FEATURES, MAX_ROWS, pack
 
 SHIPPED = sorted(glob.glob(str(models_dir() / "*" / "*.joblib")))
 SHIPPED = [p for p in SHIPPED if "reference" not in p]
@@ -148,7 +148,7 @@ def test_rows_grouped_or_not_give_the_same_bits(n):
 
 
 @pytest.mark.parametrize("case", ["multiclass", "poisson", "early_stopping", "categorical",
-                                  "too_deep", "missing_zero", "gblinear"])
+                                  "too_deep", "missing_zero", "gblinear", "too_many_features"])
 def test_what_is_left_to_xgboost_is_said(case):
     rng = np.random.default_rng(6)
     X = _rows(rng, 300, 4, 0.0)
@@ -158,7 +158,7 @@ def test_what_is_left_to_xgboost_is_said(case):
     expect = {"multiclass": "multi:softprob", "poisson": "count:poisson",
               "early_stopping": "best iteration", "categorical": "categorical",
               "too_deep": "depth", "missing_zero": "missing value",
-              "gblinear": "booster gblinear"}[case]
+              "gblinear": "booster gblinear", "too_many_features": "features >"}[case]
     if case == "multiclass":
         params |= {"objective": "multi:softprob", "num_class": 2}
     elif case == "poisson":
@@ -185,6 +185,11 @@ def test_what_is_left_to_xgboost_is_said(case):
         missing = 0.0
     elif case == "gblinear":
         params = {"objective": "binary:logistic", "booster": "gblinear"}
+    elif case == "too_many_features":  # a node's 16-bit code holds the feature index
+        wide = rng.normal(size=(30, MAX_FEATURES + 1)).astype(np.float32)
+        d = xgboost.DMatrix(wide, label=(wide[:, -1] > 0).astype(int))
+        params |= {"objective": "binary:logistic", "max_depth": 1}
+        rounds = 1
     b = xgboost.train(params, d, rounds)
     te, why = pack(b, missing)
     assert te is None and expect in why, why
