@@ -495,6 +495,14 @@ class MetaModels:
         if self.regressor.target_names:
             raise ModelStoreError(f"{regressor_path}: expected a single-output regressor, "
                                   f"got outputs {self.regressor.target_names}")
+        #: both models' compiled walks (``tree_ensemble``), taken together for a frame's
+        #: rows (``predict_pair``); None: each model predicts on its own
+        self._pair = None
+        both = (self.classifier.compiled, self.regressor.compiled)
+        if None not in both:  # then model_store has imported tree_ensemble (numba)
+            from .tree_ensemble import MAX_ROWS, predict_pair
+
+            self._pair, self._pair_rows, self._predict_pair = both, MAX_ROWS, predict_pair
 
     @property
     def confidence_model_id(self) -> str:
@@ -518,6 +526,9 @@ class MetaModels:
         X = np.asarray(X, dtype=np.float64)
         if X.ndim != 2 or X.shape[1] != len(self.feature_names):
             raise ValueError(f"features must be (n, {len(self.feature_names)}), got {X.shape}")
+        if self._pair is not None and 0 < len(X) <= self._pair_rows:
+            conf, iou = self._predict_pair(*self._pair, X)
+            return np.clip(conf, 0.0, 1.0, out=conf), np.clip(iou, 0.0, 1.0, out=iou)
         conf = np.full(X.shape[0], np.nan)
         iou = np.full(X.shape[0], np.nan)
         ok = ~np.isnan(X).all(axis=1) if X.shape[1] else np.ones(X.shape[0], bool)

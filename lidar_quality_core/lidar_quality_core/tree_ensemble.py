@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 from numba import njit
 
-__all__ = ["MAX_DEPTH", "MAX_FEATURES", "MAX_ROWS", "TreeEnsemble", "pack"]
+__all__ = ["MAX_DEPTH", "MAX_FEATURES", "MAX_ROWS", "TreeEnsemble", "pack", "predict_pair"]
 
 #: deeper trees are left to xgboost (a complete tree of depth 10 has 2047 slots)
 MAX_DEPTH = 10
@@ -172,12 +172,62 @@ class TreeEnsemble:
     def predict(self, X) -> np.ndarray:
         """What xgboost's predict returns for ``X`` (probability of the positive class or
         the regression value), float64 ``(n,)``."""
-        m = self.margin(X)
+        return self.linked(self.margin(X))
+
+    def linked(self, m: np.ndarray) -> np.ndarray:
+        """The objective's link of float32 margins ``m``, float64 (NaN stays NaN)."""
         if self.link == "logistic":
             # xgboost's sigmoid is float32; rounded once from float64 here (the exp
             # implementations differ in the last bit anyway)
             m = (1.0 / (1.0 + np.exp(-m.astype(np.float64)))).astype(np.float32)
         return m.astype(np.float64)
+
+
+_F8 = "float64[:, ::1]"
+
+
+@njit(f"void({_F8}, float32[:, ::1], uint16[:, ::1], int64, float32, float32[::1], "
+      "float32[:, ::1], uint16[:, ::1], int64, float32, float32[::1], boolean[::1])",
+      cache=True, nogil=True)
+def _pair(X, nodes_a, codes_a, depth_a, base_a, out_a, nodes_b, codes_b, depth_b, base_b,
+          out_b, missing):
+    # predict_pair's rows, as float32 with +-inf as missing, walked through both
+    # ensembles; ``missing``: the rows of nothing but NaN
+    n, m = X.shape
+    Xf = np.empty((n, m), np.float32)
+    for r in range(n):
+        none = m > 0
+        for c in range(m):
+            v = X[r, c]
+            if v == v:
+                none = False
+                if np.isinf(v):
+                    v = np.nan
+            Xf[r, c] = np.float32(v)
+        missing[r] = none
+    _margins(Xf, nodes_a, codes_a, depth_a, base_a, out_a)
+    _margins(Xf, nodes_b, codes_b, depth_b, base_b, out_b)
+
+
+def predict_pair(a: TreeEnsemble, b: TreeEnsemble, X) -> tuple[np.ndarray, np.ndarray]:
+    """``(a.predict(X'), b.predict(X'))`` of a node's two models on the same rows in one
+    compiled pass, where ``X'`` is ``X`` with +-inf as missing (a split value otherwise);
+    a row with every feature NaN gets NaN from both (an input the feature code flagged,
+    never a score). Bit for bit the two ``predict`` calls on the other rows: ~60 Python
+    calls fewer a frame (the row checks, the conversion, two walks' wrappers)."""
+    X = np.ascontiguousarray(X, np.float64)
+    if X.ndim != 2 or X.shape[1] != a.n_features or b.n_features != a.n_features:
+        raise ValueError(f"X must be (n, {a.n_features}) for both models, got {X.shape}")
+    out_a = np.empty(len(X), np.float32)
+    out_b = np.empty(len(X), np.float32)
+    missing = np.empty(len(X), np.bool_)
+    _pair(X, a.nodes, a.codes, a.depth, a.base_margin, out_a, b.nodes, b.codes, b.depth,
+          b.base_margin, out_b, missing)
+    pa, pb = a.linked(out_a), b.linked(out_b)
+    if missing.any():  # NaN as np.full writes it (the link can flip a NaN's sign bit)
+        pa[missing] = np.nan
+        pb[missing] = np.nan
+    return pa, pb
 
 
 def _depth(left, right, node=0) -> int:

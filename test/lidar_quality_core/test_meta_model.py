@@ -77,6 +77,45 @@ def test_meta_models_pair(tmp_path):
         mm.MetaModels(rpath, cpath, names)
 
 
+
+def test_meta_models_pair_walk_equals_each_model_alone(tmp_path):
+    # both compiled walks in one pass (tree_ensemble.predict_pair) against each model's
+    # own predict on the rows the definition keeps (+-inf as missing, all-NaN rows out):
+    # the same bits; beyond the walk's batch size xgboost's predict gives the same values
+    from lidar_quality_core.tree_ensemble import MAX_ROWS
+
+    X, y, iou, _ = _data(300, seed=3)
+    names = [f"f{i}" for i in range(5)]
+    cpath, rpath = mm.save_pair(tmp_path, "toy", mm.fit_estimator("xgboost", "classification", X, y),
+                                mm.fit_estimator("xgboost", "regression", X, iou), names)
+    pair = mm.MetaModels(cpath, rpath, names)
+    assert pair._pair is not None
+    rng = np.random.default_rng(4)
+    Xq = rng.normal(size=(MAX_ROWS + 40, 5)) * 2
+    Xq[rng.random(Xq.shape) < 0.2] = np.nan
+    Xq[rng.random(Xq.shape) < 0.05] = np.inf
+    Xq[rng.random(Xq.shape) < 0.05] = -np.inf
+    Xq[3] = np.nan
+    Xq[7] = [np.nan, np.inf, np.nan, -np.inf, np.nan]  # infinities only: missing, still a row
+    Xq[9, 1] = 1e39  # beyond float32: inf after the conversion, as numpy converts it
+    ok = ~np.isnan(Xq).all(axis=1)
+    clean = np.where(np.isinf(Xq), np.nan, Xq)
+    for n in (1, 5, 8, 13, 55, MAX_ROWS):
+        conf, pred = pair.predict(Xq[:n])
+        ref_c = np.full(n, np.nan)
+        ref_p = np.full(n, np.nan)
+        with np.errstate(over="ignore"):  # numpy says so when it casts 1e39 to float32
+            ref_c[ok[:n]] = np.clip(pair.classifier.predict_confidence(clean[:n][ok[:n]]), 0, 1)
+            ref_p[ok[:n]] = np.clip(pair.regressor.predict_value(clean[:n][ok[:n]]), 0, 1)
+        assert conf.tobytes() == ref_c.tobytes() and pred.tobytes() == ref_p.tobytes(), n
+    big_c, big_p = pair.predict(Xq)  # more rows than the walk takes: each model's library
+    small_c, small_p = pair.predict(Xq[:MAX_ROWS])
+    np.testing.assert_allclose(big_c[:MAX_ROWS], small_c, rtol=1e-6, atol=1e-6)
+    np.testing.assert_allclose(big_p[:MAX_ROWS], small_p, rtol=1e-6, atol=1e-6)
+    assert np.isnan(big_c[3]) and np.isnan(small_p[3]) and not np.isnan(small_c[7])
+    assert pair.predict(np.zeros((0, 5)))[0].shape == (0,)
+
+
 LMD = {"proposal_mode": "threshold", "iou_threshold": 0.5, "proposal_score_threshold": 0.0,
        "nms_iou_threshold": 0.1, "nms_score_threshold": 0.1,
        "class_names": ["car", "truck", "pedestrian", "cyclist"], "class_score_features": False}
