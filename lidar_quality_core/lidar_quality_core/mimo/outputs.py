@@ -30,12 +30,15 @@ def output_tables(merge, confidence, predicted_iou, rows, *, scale: bool):
     Figures: Shannon entropy, aleatoric entropy, mutual information, ETV, ATV,
     confidence, predicted IoU."""
     st = merge.stats
-    f8 = np.float64
-    return _tables(*(np.require(a, f8, "C") for a in (
-        merge.class_probs, merge.scores, confidence, predicted_iou, st.predictive_variance,
-        st.epistemic_variance, st.shannon_entropy, st.aleatoric_entropy,
-        st.mutual_information, st.epistemic_total_variance, st.aleatoric_total_variance)),
-        np.require(rows, np.int64, "C"), bool(scale))
+    arrays = (merge.class_probs, merge.scores, confidence, predicted_iou,
+              st.predictive_variance, st.epistemic_variance, st.shannon_entropy,
+              st.aleatoric_entropy, st.mutual_information, st.epistemic_total_variance,
+              st.aleatoric_total_variance)
+    try:  # a merge's own arrays have the kernel's types: taken as they are
+        return _tables(*arrays, rows, bool(scale))
+    except TypeError:  # another dtype or layout (no matching signature): converted
+        return _tables(*(np.require(a, np.float64, "C") for a in arrays),
+                       np.require(rows, np.int64, "C"), bool(scale))
 
 
 @njit(types.Tuple((array_out(types.float64, 2), array_out(types.float64, 2),

@@ -60,6 +60,23 @@ def test_output_tables_equal_the_numpy_chain_to_the_bit(seed, scale):
             np.testing.assert_array_equal(_bits(g), _bits(w))
 
 
+def test_output_tables_take_other_dtypes_and_layouts_converted():
+    # the merge's own arrays go to the kernel as they are; others (float32 scores, a
+    # strided view, int32 rows, lists) are converted first, with the same result
+    m = _merge(1)
+    n = len(m)
+    rng = np.random.default_rng(3)
+    conf, iou = rng.random(n), rng.random(n).astype(np.float32).astype(np.float64)
+    rows = np.flatnonzero(rng.random(n) < 0.6)
+    want = output_tables(m, conf, iou, rows, scale=True)
+    wide = np.repeat(conf, 2)[::2]                      # strided, the same values
+    for c, i, r in ((wide, iou.astype(np.float32), rows.astype(np.int32)),
+                    (conf.tolist(), iou, rows.tolist())):
+        got = output_tables(m, c, i, r, scale=True)
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(_bits(g), _bits(w))
+
+
 def test_output_tables_refuse_rows_outside_the_merge():
     m = _merge(0)
     with pytest.raises(IndexError, match="outside"):
