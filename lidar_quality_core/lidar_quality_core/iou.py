@@ -95,18 +95,6 @@ def _candidate_pairs(a, b, va, vb, same: bool = False):
     return i[order], j[order]
 
 
-def _pair_area(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Exact BEV intersection area of row-paired valid boxes ``a[k]``, ``b[k]``."""
-    n = len(a)
-    if n == 0:
-        return np.zeros(0)
-    trig = (np.cos(a[:, 6]), np.sin(a[:, 6]), np.cos(b[:, 6]), np.sin(b[:, 6]))
-    f8 = np.float64
-    out = np.empty(n)
-    _clip_areas(*(np.require(x, f8, "C") for x in (a, b, *trig)), _SNAP, out)
-    return out
-
-
 @njit(inline="always")
 def _clip_area(a, p, b, q, ca, sa, cb, sb, snap, vx, vy, nx, ny, s):
     """Sutherland-Hodgman for boxes ``a[p]`` and ``b[q]`` (yaw cosines and sines given):
@@ -170,31 +158,29 @@ def _clip_area(a, p, b, q, ca, sa, cb, sb, snap, vx, vy, nx, ny, s):
     return min(max(area, 0.0), min(a[p, 3] * a[p, 4], b[q, 3] * b[q, 4]))
 
 
-@njit("void(float64[:, ::1], float64[:, ::1], float64[::1], float64[::1], float64[::1], "
-      "float64[::1], float64, float64[::1])", cache=True, nogil=True)
-def _clip_areas(a, b, ca, sa, cb, sb, snap, out):
-    """:func:`_clip_area` of each row pair ``a[p]``, ``b[p]``."""
-    vx, vy, nx, ny, s = (np.empty(16), np.empty(16), np.empty(16), np.empty(16),
-                         np.empty(16))
-    for p in range(a.shape[0]):
-        out[p] = _clip_area(a, p, b, p, ca[p], sa[p], cb[p], sb[p], snap, vx, vy, nx, ny, s)
+#: what :func:`_indexed_iou` gives of a pair
+_BEV, _3D, _AREA = 0, 1, 2
 
 
 @njit("void(float64[:, ::1], float64[:, ::1], int64[::1], int64[::1], float64[::1], "
-      "float64[::1], float64[::1], float64[::1], boolean, float64, float64[::1])",
+      "float64[::1], float64[::1], float64[::1], int64, float64, float64[::1])",
       cache=True, nogil=True)
-def _indexed_iou(a, b, ia, ib, ca, sa, cb, sb, three_d, snap, out):
-    """IoU of the pairs ``a[ia[p]]``, ``b[ib[p]]`` of valid boxes (per-box yaw cosines and
-    sines): the BEV intersection (:func:`_clip_area`), times the z overlap in 3D, over the
-    union; a union <= 0 or NaN gives 0, the result clipped to [0, 1]. One compiled pass
-    over the pair indices: the numpy chain it replaces gathered both boxes and their trig
-    per pair and ran some 20 calls for the overlap, union and clipping."""
+def _indexed_iou(a, b, ia, ib, ca, sa, cb, sb, kind, snap, out):
+    """IoU (``kind`` ``_BEV`` or ``_3D``) or BEV intersection area (``_AREA``) of the pairs
+    ``a[ia[p]]``, ``b[ib[p]]`` of valid boxes (per-box yaw cosines and sines): the BEV
+    intersection (:func:`_clip_area`), times the z overlap in 3D, over the union; a union
+    <= 0 or NaN gives 0, the result clipped to [0, 1]. One compiled pass over the pair
+    indices: the numpy chain it replaces gathered both boxes and their trig per pair and
+    ran some 20 calls for the overlap, union and clipping."""
     vx, vy, nx, ny, s = (np.empty(16), np.empty(16), np.empty(16), np.empty(16),
                          np.empty(16))
     for p in range(ia.shape[0]):
         i, j = ia[p], ib[p]
         inter = _clip_area(a, i, b, j, ca[i], sa[i], cb[j], sb[j], snap, vx, vy, nx, ny, s)
-        if three_d:
+        if kind == _AREA:
+            out[p] = inter
+            continue
+        if kind == _3D:
             top = min(a[i, 2] + a[i, 5] / 2, b[j, 2] + b[j, 5] / 2)
             bot = max(a[i, 2] - a[i, 5] / 2, b[j, 2] - b[j, 5] / 2)
             inter = inter * max(top - bot, 0.0)
@@ -206,7 +192,7 @@ def _indexed_iou(a, b, ia, ib, ca, sa, cb, sb, three_d, snap, out):
         out[p] = 0.0 if v != v else min(max(v, 0.0), 1.0)
 
 
-def _indexed(a, b, ia, ib, three_d: bool, trig=None) -> np.ndarray:
+def _indexed(a, b, ia, ib, kind: int, trig=None) -> np.ndarray:
     """:func:`_indexed_iou` of index pairs into ``a`` and ``b`` (valid boxes); ``trig``:
     the yaw cosines and sines of ``a``, when ``b`` is ``a`` and the caller has them."""
     f8 = np.float64
@@ -215,7 +201,7 @@ def _indexed(a, b, ia, ib, three_d: bool, trig=None) -> np.ndarray:
     cb, sb = (ca, sa) if b is a else (np.cos(b[:, 6]), np.sin(b[:, 6]))
     out = np.empty(len(ia))
     _indexed_iou(a, b, np.asarray(ia, np.int64), np.asarray(ib, np.int64), ca, sa, cb, sb,
-                 three_d, _SNAP, out)
+                 kind, _SNAP, out)
     return out
 
 
@@ -224,7 +210,7 @@ def iou_bev_indexed(boxes, i, j, cos, sin) -> np.ndarray:
     l and w > 0; (M, 7) float64, C order) whose yaw cosines and sines the caller has
     (``np.cos`` / ``np.sin`` of column 6): :func:`iou_bev_pairs`' values without gathering
     the pairs or checking the boxes again."""
-    return _indexed(boxes, boxes, i, j, False, trig=(cos, sin))
+    return _indexed(boxes, boxes, i, j, _BEV, trig=(cos, sin))
 
 
 def sparse_iou(a, b=None, mode: str = "bev"):
@@ -244,7 +230,7 @@ def sparse_iou(a, b=None, mode: str = "bev"):
         va, vb = _valid(a, three_d), _valid(b, three_d)
         i, j = _candidate_pairs(a, b, va, vb, same=same)
         # per-box trig (pairs outnumber boxes in dense scenes), read per pair in the kernel
-        return i, j, _indexed(a, a if same else b, i, j, three_d)
+        return i, j, _indexed(a, a if same else b, i, j, _3D if three_d else _BEV)
 
 
 def _dense(a, b, mode):
@@ -271,7 +257,7 @@ def bev_intersection_area(a, b) -> np.ndarray:
     out = np.zeros((len(a), len(b)))
     with np.errstate(all="ignore"):
         i, j = _candidate_pairs(a, b, _valid(a, False), _valid(b, False))
-        out[i, j] = np.nan_to_num(_pair_area(a[i], b[j]), nan=0.0)
+        out[i, j] = np.nan_to_num(_indexed(a, b, i, j, _AREA), nan=0.0)
     return out
 
 
@@ -285,7 +271,7 @@ def _pairs(a, b, three_d):
         d2 = (a[:, 0] - b[:, 0]) ** 2 + (a[:, 1] - b[:, 1]) ** 2
         ok &= d2 <= (_radius(a) + _radius(b)) ** 2
         k = np.flatnonzero(ok)
-        out[k] = _indexed(a, b, k, k, three_d)
+        out[k] = _indexed(a, b, k, k, _3D if three_d else _BEV)
     return out
 
 
