@@ -166,12 +166,12 @@ _BEV, _3D, _AREA = 0, 1, 2
       "float64[::1], float64[::1], float64[::1], int64, float64, float64[::1])",
       cache=True, nogil=True)
 def _indexed_iou(a, b, ia, ib, ca, sa, cb, sb, kind, snap, out):
-    """IoU (``kind`` ``_BEV`` or ``_3D``) or BEV intersection area (``_AREA``) of the pairs
-    ``a[ia[p]]``, ``b[ib[p]]`` of valid boxes (per-box yaw cosines and sines): the BEV
-    intersection (:func:`_clip_area`), times the z overlap in 3D, over the union; a union
-    <= 0 or NaN gives 0, the result clipped to [0, 1]. One compiled pass over the pair
-    indices: the numpy chain it replaces gathered both boxes and their trig per pair and
-    ran some 20 calls for the overlap, union and clipping."""
+    """What ``kind`` names of the pairs ``a[ia[p]]``, ``b[ib[p]]`` of valid boxes (per-box
+    yaw cosines and sines). ``_AREA``: the BEV intersection as :func:`_clip_area` gives it
+    (NaN included). ``_BEV`` / ``_3D``: IoU, that intersection (times the z overlap in 3D)
+    over the union; a union <= 0 or NaN gives 0, the result clipped to [0, 1]. One compiled
+    pass over the pair indices: the numpy chain it replaces gathered both boxes and their
+    trig per pair and ran some 20 calls for the overlap, union and clipping."""
     vx, vy, nx, ny, s = (np.empty(16), np.empty(16), np.empty(16), np.empty(16),
                          np.empty(16))
     for p in range(ia.shape[0]):
