@@ -40,7 +40,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from dataclasses import dataclass, field
-from typing import Iterable, Mapping
+from collections.abc import Iterable, Mapping
 
 import numpy as np
 from numba import njit
@@ -286,6 +286,29 @@ def _window_scores(total, mass, train_n, spread, empty, min_values, out):
         out[r] = max(raw - expected, 0.0) - spread[r]
 
 
+@njit("Tuple((int64[::1], int64))(float64[:, ::1], float64[:, ::1], float64[:, ::1], "
+      "float64[:, ::1], float64[::1], float64[::1], boolean[::1], float64, boolean, "
+      "float64[::1], int64)", cache=True, nogil=True)
+def _window_update(total, counts, old, mass, train_n, spread, empty, min_values, score, out,
+                   k):
+    """A frame's step of the window in one compiled call: its ``counts`` added to
+    ``total``, the leaving frame's ``old`` counts (if any rows) taken off, ``out`` the
+    :func:`_window_scores` (all NaN unless ``score``) and :func:`_ranked`'s first ``k``.
+    Counts are whole numbers: the sums are exact in any order."""
+    rows, cols = total.shape
+    for r in range(rows):
+        for j in range(cols):
+            total[r, j] += counts[r, j]
+    if old.shape[0]:
+        for r in range(rows):
+            for j in range(cols):
+                total[r, j] -= old[r, j]
+    out[:] = np.nan
+    if score:
+        _window_scores(total, mass, train_n, spread, empty, min_values, out)
+    return _ranked(out, k)
+
+
 def explain(name: str, profile: QuantityProfile, values) -> str:
     """The drift of one quantity in words: live against training median, and a hint."""
     v = np.asarray(values, np.float64).reshape(-1)
@@ -306,6 +329,9 @@ def explain(name: str, profile: QuantityProfile, values) -> str:
     hint = next((h for key, h in HINTS.items() if key in name.lower()), None)
     text = " ".join(parts)
     return f"{text}: {hint}" if hint else text
+
+
+_NO_COUNTS = np.zeros((0, N_FINE + 1))  # no frame leaves the window (_window_update)
 
 
 class _GroupValues:
@@ -419,16 +445,16 @@ class DriftMonitor:
                             self._sorted_edges, counts)
         self._counts.append(counts)
         self._values.append(frame)
-        self._total += counts
+        old = _NO_COUNTS
         if len(self._counts) > self.window:
-            self._total -= self._counts.popleft()
+            old = self._counts.popleft()
             self._values.popleft()
-        scores = np.full(len(self._names), np.nan)
-        if len(self._counts) >= self.min_frames:
-            _window_scores(self._total, self._mass, self._train_n, self._spread, self._empty,
-                           float(self.min_values), scores)
+        scores = np.empty(len(self._names))
         # only the first few of the ranking are reported (top)
-        first, n_scored = _ranked(scores, max(self.top, 1))
+        first, n_scored = _window_update(
+            self._total, counts, old, self._mass, self._train_n, self._spread, self._empty,
+            float(self.min_values), len(self._counts) >= self.min_frames, scores,
+            max(self.top, 1))
         ranked = [(self._names[i], float(scores[i])) for i in first.tolist()]
         score = ranked[0][1] if ranked else 0.0
         level = ERROR if score >= self.error else WARN if score >= self.warn else OK

@@ -154,6 +154,9 @@ def test_encode_detections_is_the_message_arrays_to_detections_builds(n, frame_i
     S = rng.random((n, 4))
     S[rng.random((n, 4)) < 0.2] = np.nan      # absent hypotheses
     S[: min(n, 3), 1] = S[: min(n, 3), 0]     # ties keep the column order
+    if n >= 9:
+        S[3:6, 2], S[6:8, 3] = np.inf, -np.inf    # not finite: no hypothesis, as NaN
+        S[8, :] = [0.0, -0.0, 0.0, -0.0]          # signed zeros tie: column order
     ids = [f"{k % 3}:{'é' * (k % 4)}{k}" for k in range(n)]
     for cov in (None, rng.random((n, 6))):
         ref = arrays_to_detections(h, boxes, None, None, ids=ids, covariance_diagonal=cov,
