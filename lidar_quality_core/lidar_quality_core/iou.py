@@ -162,9 +162,12 @@ def _clip_area(a, p, b, q, ca, sa, cb, sb, snap, vx, vy, nx, ny, s):
 _BEV, _3D, _AREA = 0, 1, 2
 
 
-@njit("void(float64[:, ::1], float64[:, ::1], int64[::1], int64[::1], float64[::1], "
-      "float64[::1], float64[::1], float64[::1], int64, float64, float64[::1])",
-      cache=True, nogil=True)
+_F2 = array_in(types.float64, 2)
+
+
+# inputs read-only: read-only boxes (a frozen array, a view of a message) are accepted
+@njit(types.void(_F2, _F2, _I8, _I8, _F8, _F8, _F8, _F8, types.int64, types.float64,
+                 array_out(types.float64)), cache=True, nogil=True)
 def _indexed_iou(a, b, ia, ib, ca, sa, cb, sb, kind, snap, out):
     """What ``kind`` names of the pairs ``a[ia[p]]``, ``b[ib[p]]`` of valid boxes (per-box
     yaw cosines and sines). ``_AREA``: the BEV intersection as :func:`_clip_area` gives it
@@ -205,12 +208,16 @@ def _indexed(a, b, ia, ib, kind: int, trig=None) -> np.ndarray:
     return out
 
 
-def iou_bev_indexed(boxes, i, j, cos, sin) -> np.ndarray:
+@njit(array_out(types.float64)(_F2, _I8, _I8, _F8, _F8), cache=True, nogil=True)
+def iou_bev_indexed(boxes, i, j, cos, sin):
     """(N,) BEV IoU of the pairs ``boxes[i[p]]``, ``boxes[j[p]]`` of valid boxes (finite,
-    l and w > 0; (M, 7) float64, C order) whose yaw cosines and sines the caller has
-    (``np.cos`` / ``np.sin`` of column 6): :func:`iou_bev_pairs`' values without gathering
-    the pairs or checking the boxes again."""
-    return _indexed(boxes, boxes, i, j, _BEV, trig=(cos, sin))
+    l and w > 0; (M, 7) float64, C order; ``i``, ``j`` int64) whose yaw cosines and sines
+    the caller has (``np.cos`` / ``np.sin`` of column 6): :func:`iou_bev_pairs`' values
+    without gathering the pairs or checking the boxes again. Compiled: callable from
+    other compiled kernels too (``mimo.clustering``)."""
+    out = np.empty(i.shape[0])
+    _indexed_iou(boxes, boxes, i, j, cos, sin, cos, sin, _BEV, _SNAP, out)
+    return out
 
 
 def sparse_iou(a, b=None, mode: str = "bev"):

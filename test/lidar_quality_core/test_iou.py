@@ -255,6 +255,22 @@ def test_indexed_pairs_equal_gathered_pairs_to_the_bit():
     assert (want > 0).sum() > 20
 
 
+def test_read_only_boxes_give_the_same_bits():
+    # boxes a caller froze, or a view of a message's bytes, are read-only
+    rng = np.random.default_rng(11)
+    a, b = rand_boxes(rng, 25), rand_boxes(rng, 25)
+    ra, rb = a.copy(), b.copy()
+    ra.flags.writeable = rb.flags.writeable = False
+    for f in (iou_bev, iou_3d, iou_bev_pairs, iou_3d_pairs, bev_intersection_area):
+        np.testing.assert_array_equal(f(ra, rb).view(np.uint64), f(a, b).view(np.uint64))
+    for x, y in zip(sparse_iou(ra), sparse_iou(a)):
+        np.testing.assert_array_equal(x, y)
+    i, j = np.triu_indices(25, 1)
+    np.testing.assert_array_equal(
+        iou_bev_indexed(ra, i, j, np.cos(a[:, 6]), np.sin(a[:, 6])).view(np.uint64),
+        iou_bev_pairs(a[i], a[j]).view(np.uint64))
+
+
 # ---------------------------------------------------------------- properties
 box_st = st.tuples(st.floats(-3, 3), st.floats(-3, 3), st.floats(-1, 1), st.floats(0.05, 5),
                    st.floats(0.05, 5), st.floats(0.05, 3), st.floats(-7, 7))

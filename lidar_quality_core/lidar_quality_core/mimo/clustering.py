@@ -172,13 +172,26 @@ def valid_neighbour_pairs(boxes, eps, labels):
     # any label values (names, ids): equal labels, equal codes
     lab = (np.zeros(0, np.int64) if labels is None
            else np.unique(np.asarray(labels), return_inverse=True)[1].astype(np.int64).reshape(-1))
-    i, j, st = _bounded_pairs(boxes, c, s, r, np.argsort(boxes[:, 0], kind="stable"), lab,
-                              labels is not None, 1.0 - float(eps))
-    ok = st == 1
-    k = np.flatnonzero(~ok)
-    if len(k):  # the undecided pairs' exact IoU (the boxes are valid, their trig is known)
-        ok[k[(1.0 - iou_bev_indexed(boxes, i[k], j[k], c, s)) <= eps]] = True
-    return i[ok], j[ok]
+    return _neighbours(boxes, c, s, r, np.argsort(boxes[:, 0], kind="stable"), lab,
+                       labels is not None, float(eps))
+
+
+@njit(types.UniTuple(array_out(types.int64), 2)(
+    array_in(types.float64, 2), array_in(types.float64), array_in(types.float64),
+    array_in(types.float64), I1, I1, types.boolean, types.float64), cache=True, nogil=True)
+def _neighbours(boxes, c, s, r, order, labels, use_labels, eps):
+    """:func:`valid_neighbour_pairs`' pairs in one compiled call: those the bounds decide
+    (``_bounded_pairs``) and the undecided ones whose exact IoU is at least ``1 - eps``
+    (the boxes are valid, their trig is known); a numpy chain of ~12 calls before."""
+    i, j, st = _bounded_pairs(boxes, c, s, r, order, labels, use_labels, 1.0 - eps)
+    keep = st == 1
+    undecided = np.flatnonzero(st == 0)
+    if undecided.shape[0]:
+        iou = iou_bev_indexed(boxes, i[undecided], j[undecided], c, s)
+        for p in range(undecided.shape[0]):
+            if 1.0 - iou[p] <= eps:
+                keep[undecided[p]] = True
+    return i[keep], j[keep]
 
 
 def dbscan_pairs(n: int, i: np.ndarray, j: np.ndarray, min_samples: int) -> np.ndarray:

@@ -104,6 +104,9 @@ def test_neighbour_pairs_equal_thresholded_sparse_iou(n, seed, eps, kind):
     assert set(zip(i.tolist(), j.tolist())) == _ref_pairs(b, eps)
     i, j = neighbour_pairs(b, eps, labels)
     assert set(zip(i.tolist(), j.tolist())) == _ref_pairs(b, eps, labels)
+    b.flags.writeable = False  # e.g. a view of a message: the same pairs, in the same order
+    i2, j2 = neighbour_pairs(b, eps, labels)
+    assert i2.tolist() == i.tolist() and j2.tolist() == j.tolist()
 
 
 def test_neighbour_pairs_identical_and_invalid_boxes():
