@@ -268,6 +268,12 @@ def test_invalid_members_are_noise_and_unknown_variances_nan():
     p[4] = 0.0
     cfg = MergeConfig(score_type="probabilities")
     assert merge_heads([head(CAR, p), head(CAR, p)], cfg).member_cluster.tolist() == [0, 0]
+    # finite entries whose sum overflows: invalid too (no infinite mean box)
+    huge = CAR.copy()
+    huge[:2] = 1e308
+    r = merge_heads([head(huge, CAR_LOGITS), head(CAR, CAR_LOGITS), head(CAR, CAR_LOGITS)],
+                    MergeConfig(voting="affirmative"))
+    assert r.member_cluster.tolist() == [-1, 0, 0]
 
 
 def test_no_background_column():
