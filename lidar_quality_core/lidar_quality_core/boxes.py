@@ -10,6 +10,7 @@ vectorized. No rclpy: only the message classes are imported, lazily where needed
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -113,7 +114,7 @@ def tilt_issue(arrays: DetectionArrays, what: str = "boxes",
     # just under the tolerance: the count below decides, in degrees
     if not n or not _maybe_tilted(np.asarray(arrays.roll_pitch, np.float64).reshape(n, 2),
                                   np.asarray(arrays.valid, bool),
-                                  float(np.radians(tolerance_deg)) * (1.0 - 1e-9)):
+                                  math.radians(tolerance_deg) * (1.0 - 1e-9)):
         return None
     tilt = arrays.tilt_deg()
     with np.errstate(invalid="ignore"):

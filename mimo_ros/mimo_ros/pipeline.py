@@ -234,9 +234,8 @@ def _variance_entries(msg) -> tuple[np.ndarray, list, np.ndarray]:
 
 def _variances(msg, arrays: DetectionArrays, issues: list | None) -> np.ndarray:
     n = len(arrays)
-    var = np.full((n, 7), np.nan)
     if msg is None:
-        return var
+        return np.full((n, 7), np.nan)
     idx, ids, vals = _variance_entries(msg)
     idx = np.asarray(idx, np.int64)
     if len(ids) == n and ids == arrays.ids:   # the usual case: entry k is detection k
@@ -255,6 +254,7 @@ def _variances(msg, arrays: DetectionArrays, issues: list | None) -> np.ndarray:
     with np.errstate(invalid="ignore"):
         ok = np.isfinite(vals) & (vals >= 0.0)
     bad = int((~match).sum()) + int((~ok[match].all(axis=1)).sum())
+    var = np.full((n, 7), np.nan)
     var[idx[match]] = np.where(ok[match], vals[match], np.nan)  # repeated index: the last
     if len(ids) != n:
         _note(issues, f"{len(ids)} variances for {n} detections")
