@@ -306,7 +306,7 @@ def head_detections(det_msg, variance_msg, settings: MimoSettings = MimoSettings
         if tilted:
             _note(issues, tilted)
     probs, usable, known, in_range = _class_probabilities(arrays, settings.class_names)
-    if not usable.all():
+    if np.count_nonzero(usable) < len(usable):  # not usable.all(), cheaper once cold
         if issues is not None:
             bad = np.flatnonzero(~usable)
             why = [arrays.reasons[i] or ("no hypothesis of a known class" if not known[i]
@@ -350,8 +350,11 @@ class MimoFrame:
         m = self.merge
         heads = m.member_head[m.top_member].tolist()
         rows = m.member_index[m.top_member].tolist()
-        return [f"{self.heads_used[h]}:{r if by_index else self.arrays[h].ids[r]}"
-                for h, r in zip(heads, rows)]
+        if by_index:
+            return [f"{self.heads_used[h]}:{r}" for h, r in zip(heads, rows)]
+        prefix = [f"{k}:" for k in self.heads_used]
+        ids = [a.ids for a in self.arrays]
+        return [prefix[h] + str(ids[h][r]) for h, r in zip(heads, rows)]
 
     def class_labels(self) -> list[str]:
         """Class name of each merged detection."""
