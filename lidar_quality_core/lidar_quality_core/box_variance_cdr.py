@@ -70,7 +70,8 @@ def _walk(raw, p, n):
 def decode_box_variance_array(data) -> DecodedVariances:
     """Decode serialized BoxVarianceArray bytes (``CdrError`` when they are not one)."""
     # an entry takes >= 64 bytes
-    buf, _, h, n, p = open_array(data, "BoxVarianceArray", "variance entries", 64)
+    buf, _, h, n, p = open_array(data, "BoxVarianceArray", "variance entries", 64,
+                                 words=False)
     ok, index, id_at, id_len, values = _walk(np.frombuffer(buf, np.uint8), p, n)
     if not ok:
         raise CdrError(f"truncated BoxVarianceArray ({len(buf)} bytes)")

@@ -308,6 +308,47 @@ def test_damaged_bytes_decode_alike_on_both_walks(seed, monkeypatch):
             np.testing.assert_array_equal(fast.det_spans, loop.det_spans)
 
 
+def _opened(data, monkeypatch=None):
+    """``open_array``'s result (header as a tuple) or its error text; with
+    ``monkeypatch``: by the Python path alone (the compiled opening declines)."""
+    from lidar_quality_core import detection_cdr
+
+    if monkeypatch is not None:
+        monkeypatch.setattr(detection_cdr, "_opening", lambda raw: (0,) * 6)
+    try:
+        buf, words, h, n, p = detection_cdr.open_array(data, "Detection3DArray",
+                                                       "detections", 100)
+        return (h.stamp.sec, h.stamp.nanosec, h.frame_id, n, p, bytes(words))
+    except CdrError as exc:
+        return str(exc)
+    finally:
+        if monkeypatch is not None:
+            monkeypatch.undo()
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_compiled_opening_reads_what_the_python_path_reads(seed, monkeypatch):
+    rng = np.random.default_rng(seed)
+    msg = random_array(seed, n=3)
+    msg.header.frame_id = ["", "lidar", "é" * 3, "x" * 11][seed]
+    msg.header.stamp.sec = [-(2**31), -1, 0, 2**31 - 1][seed]
+    good = serialize_message(msg)
+    cases = [good, b"", good[:3], good[:15], good[:16], good[:20], b"\x00\x07" + good[2:]]
+    frame_id_at = 16
+    if len(msg.header.frame_id):
+        not_utf8 = bytearray(good)
+        not_utf8[frame_id_at] = 0xFF
+        cases.append(bytes(not_utf8))
+    for _ in range(40):
+        bad = bytearray(good)
+        for at in rng.integers(4, min(len(bad), 40), size=int(rng.integers(1, 3))):
+            bad[at] = int(rng.integers(0, 256))
+        cases.append(bytes(bad[:int(rng.integers(4, len(bad) + 1))]))
+    for data in cases:
+        assert _opened(data) == _opened(data, monkeypatch)
+    assert isinstance(_opened(good), tuple)
+
+
 def _with_ids(ids):
     return Detection3DArray(detections=[Detection3D(id=i) for i in ids])
 
