@@ -397,7 +397,7 @@ def _merged(boxes, logits, var, probs, lab, member_score, fg, temperature, wrapp
         for k in range(7):
             merged[g, k] /= m
         merged[g, 6] = gb[a, 6]
-        # softmax(mean logits / T), as merging._softmax
+        # softmax(mean logits / T), as _members and _normalised for the members
         hi = -np.inf
         for c in range(ncls):
             cls_probs[g, c] /= m
