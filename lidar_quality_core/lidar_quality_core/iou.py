@@ -11,7 +11,7 @@ from numba import njit, types
 from scipy.spatial import cKDTree
 
 from .box_geometry import as_boxes
-from .kernel_types import array_in, array_out
+from .kernel_types import F1, F2, I1, array_out
 
 __all__ = ["bev_intersection_area", "iou_bev", "iou_3d", "iou_bev_pairs", "iou_3d_pairs",
            "iou_bev_indexed", "sparse_iou"]
@@ -32,11 +32,9 @@ def _radius(b: np.ndarray) -> np.ndarray:
     return 0.5 * np.sqrt(b[:, 3] * b[:, 3] + b[:, 4] * b[:, 4])
 
 
-_F8 = array_in(types.float64)
-_I8 = array_in(types.int64)
 
 
-@njit(types.UniTuple(array_out(types.int64), 2)(_F8, _F8, _F8, _F8, _F8, _F8, _I8, _I8,
+@njit(types.UniTuple(array_out(types.int64), 2)(F1, F1, F1, F1, F1, F1, I1, I1,
                                                 types.boolean), cache=True, nogil=True)
 def _dense_pairs(ax, ay, ra, bx, by, rb, ia, ib, same):
     # every (i, j) of ia x ib, row-major, whose circles meet: the distance and radius sum
@@ -162,11 +160,8 @@ def _clip_area(a, p, b, q, ca, sa, cb, sb, snap, vx, vy, nx, ny, s):
 _BEV, _3D, _AREA = 0, 1, 2
 
 
-_F2 = array_in(types.float64, 2)
-
-
 # inputs read-only: read-only boxes (a frozen array, a view of a message) are accepted
-@njit(types.void(_F2, _F2, _I8, _I8, _F8, _F8, _F8, _F8, types.int64, types.float64,
+@njit(types.void(F2, F2, I1, I1, F1, F1, F1, F1, types.int64, types.float64,
                  array_out(types.float64)), cache=True, nogil=True)
 def _indexed_iou(a, b, ia, ib, ca, sa, cb, sb, kind, snap, out):
     """What ``kind`` names of the pairs ``a[ia[p]]``, ``b[ib[p]]`` of valid boxes (per-box
@@ -195,12 +190,11 @@ def _indexed_iou(a, b, ia, ib, ca, sa, cb, sb, kind, snap, out):
         out[p] = 0.0 if v != v else min(max(v, 0.0), 1.0)
 
 
-def _indexed(a, b, ia, ib, kind: int, trig=None) -> np.ndarray:
-    """:func:`_indexed_iou` of index pairs into ``a`` and ``b`` (valid boxes); ``trig``:
-    the yaw cosines and sines of ``a``, when ``b`` is ``a`` and the caller has them."""
+def _indexed(a, b, ia, ib, kind: int) -> np.ndarray:
+    """:func:`_indexed_iou` of index pairs into ``a`` and ``b`` (valid boxes)."""
     f8 = np.float64
     a, b = np.require(a, f8, "C"), np.require(b, f8, "C")
-    ca, sa = trig if trig is not None else (np.cos(a[:, 6]), np.sin(a[:, 6]))
+    ca, sa = np.cos(a[:, 6]), np.sin(a[:, 6])
     cb, sb = (ca, sa) if b is a else (np.cos(b[:, 6]), np.sin(b[:, 6]))
     out = np.empty(len(ia))
     _indexed_iou(a, b, np.asarray(ia, np.int64), np.asarray(ib, np.int64), ca, sa, cb, sb,
@@ -208,7 +202,7 @@ def _indexed(a, b, ia, ib, kind: int, trig=None) -> np.ndarray:
     return out
 
 
-@njit(array_out(types.float64)(_F2, _I8, _I8, _F8, _F8), cache=True, nogil=True)
+@njit(array_out(types.float64)(F2, I1, I1, F1, F1), cache=True, nogil=True)
 def iou_bev_indexed(boxes, i, j, cos, sin):
     """(N,) BEV IoU of the pairs ``boxes[i[p]]``, ``boxes[j[p]]`` of valid boxes (finite,
     l and w > 0; (M, 7) float64, C order; ``i``, ``j`` int64) whose yaw cosines and sines
